@@ -1,0 +1,188 @@
+//! The `scatterfarm` binary as a user runs it: real processes, real files.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn scatterfarm(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
+        .args(args)
+        .current_dir(dir)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("the scatterfarm binary runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn fails(out: &Output) -> String {
+    assert!(
+        !out.status.success(),
+        "succeeded where it should fail: {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+const SMALL: &str = r##"
+[geometry]
+size_mm = 16.0
+grid = 4
+positions = 16
+directions = 3
+
+[materials]
+fog = { sigma_s = 0.3, sigma_a = 0.02, g = 0.1 }
+
+[map]
+legend = { "." = "moderate", "#" = "opaque", "f" = "fog" }
+rows = [
+  "....",
+  ".#f.",
+  ".ff.",
+  "....",
+]
+"##;
+
+#[test]
+fn render_writes_the_observation_and_its_sidecar() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("small.toml"), SMALL).unwrap();
+    ok(&scatterfarm(
+        &[
+            "render",
+            "small.toml",
+            "--out",
+            "out/obs.npy",
+            "--photons",
+            "2000",
+            "--seed",
+            "3",
+            "--engine",
+            "cpu",
+        ],
+        dir.path(),
+    ));
+    let npy = std::fs::read(dir.path().join("out/obs.npy")).unwrap();
+    // NPY magic, float32 little-endian, shape [48, 48].
+    assert_eq!(&npy[..6], b"\x93NUMPY");
+    let header = String::from_utf8_lossy(&npy[10..128]);
+    assert!(
+        header.contains("'descr': '<f4'") && header.contains("(48, 48)"),
+        "{header}"
+    );
+    let side: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("out/obs.json")).unwrap()).unwrap();
+    assert_eq!(side["format"], "scatterfarm-observation/1");
+    assert_eq!(side["positions"], 16);
+    assert_eq!(side["directions"], 3);
+    assert_eq!(side["size_mm"], 16.0);
+    assert_eq!(side["photons_per_source"], 2000);
+    assert_eq!(side["seed"], 3);
+    assert!(side["engine"].as_str().unwrap().starts_with("cpu/"));
+    assert_eq!(side["scene_sha256"].as_str().unwrap().len(), 64);
+    let exited = side["photons_exited"].as_u64().unwrap();
+    let absorbed = side["photons_absorbed"].as_u64().unwrap();
+    assert_eq!(exited + absorbed, 48 * 2000);
+    assert!(exited > 0 && absorbed > 0);
+    // Fractions sum to the exited photons over the photons per source.
+    let values: Vec<f32> = npy[npy.len() - 48 * 48 * 4..]
+        .chunks(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let sum: f64 = values.iter().map(|&v| f64::from(v)).sum();
+    assert!((sum * 2000.0 - exited as f64).abs() < 0.5, "{sum}");
+
+    // The same seed renders the same file; drawing it gives a PNG.
+    ok(&scatterfarm(
+        &[
+            "render",
+            "small.toml",
+            "--out",
+            "again.npy",
+            "--photons",
+            "2000",
+            "--seed",
+            "3",
+            "--engine",
+            "cpu",
+        ],
+        dir.path(),
+    ));
+    assert_eq!(std::fs::read(dir.path().join("again.npy")).unwrap(), npy);
+    ok(&scatterfarm(
+        &["show", "out/obs.npy", "--out", "obs.png"],
+        dir.path(),
+    ));
+    let png = image::open(dir.path().join("obs.png")).unwrap();
+    assert!(png.width() >= 48 && png.height() >= 48);
+}
+
+#[test]
+fn a_bad_scene_names_the_file_and_place_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("bad.toml"), SMALL.replace(".ff.", ".fx.")).unwrap();
+    let err = fails(&scatterfarm(
+        &["render", "bad.toml", "--out", "obs.npy", "--photons", "10"],
+        dir.path(),
+    ));
+    assert!(
+        err.contains("bad.toml")
+            && err.contains("row 3, column 3")
+            && err.contains("unknown symbol 'x'"),
+        "{err}"
+    );
+    assert!(!dir.path().join("obs.npy").exists() && !dir.path().join("obs.json").exists());
+    let err = fails(&scatterfarm(
+        &["render", "no-such-scene", "--out", "obs.npy"],
+        dir.path(),
+    ));
+    assert!(
+        err.contains("no-such-scene") && err.contains("fig7a") && err.contains("phantom128"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        1,
+        "something was written"
+    );
+}
+
+#[test]
+fn scenes_are_listed_shown_and_drawn() {
+    let dir = tempfile::tempdir().unwrap();
+    let list = ok(&scatterfarm(&["scenes"], dir.path()));
+    for name in ["fig7a", "fig7f", "fig7l", "phantom16", "phantom128"] {
+        assert!(list.contains(name), "{list}");
+    }
+    assert_eq!(list.lines().count(), 14);
+    let text = ok(&scatterfarm(&["scenes", "show", "fig7k"], dir.path()));
+    std::fs::write(dir.path().join("k.toml"), &text).unwrap();
+    assert!(text.contains("[map]") && text.contains("opaque"));
+    ok(&scatterfarm(
+        &["show", "k.toml", "--out", "k.png"],
+        dir.path(),
+    ));
+    let png = image::open(dir.path().join("k.png")).unwrap().to_rgb8();
+    assert!(png.width() > 512);
+    let err = fails(&scatterfarm(&["scenes", "show", "fig7z"], dir.path()));
+    assert!(err.contains("fig7z") && err.contains("fig7a"), "{err}");
+}
+
+#[test]
+fn help_answers() {
+    let dir = tempfile::tempdir().unwrap();
+    let help = ok(&scatterfarm(&["--help"], dir.path()));
+    for cmd in ["render", "show", "scenes", "bench"] {
+        assert!(help.contains(cmd), "{help}");
+    }
+    let help = ok(&scatterfarm(&["render", "--help"], dir.path()));
+    assert!(help.contains("--photons") && help.contains("--seed") && help.contains("--engine"));
+}
