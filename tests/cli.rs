@@ -162,7 +162,7 @@ fn scenes_are_listed_shown_and_drawn() {
     for name in ["fig7a", "fig7f", "fig7l", "phantom16", "phantom128"] {
         assert!(list.contains(name), "{list}");
     }
-    assert_eq!(list.lines().count(), 14);
+    assert_eq!(list.lines().count(), 15);
     let text = ok(&scatterfarm(&["scenes", "show", "fig7k"], dir.path()));
     std::fs::write(dir.path().join("k.toml"), &text).unwrap();
     assert!(text.contains("[map]") && text.contains("opaque"));

@@ -4,10 +4,22 @@
 //! - [`observation`]: observation files (float32 NPY plus JSON sidecar), written atomically.
 //! - [`picture`]: PNG drawings of material maps and observation matrices.
 //! - [`engines`]: picking a render engine from `--engine`.
+//! - [`seeds`]: the seed streams every random use derives from the job seed.
+//! - [`similarity`]: similarity metrics and the calibration of ε.
+//! - [`search`]: the paper's quad-tree permutation search as a pure state machine.
+//! - [`reconstruction`]: target synthesis, ε calibration and the in-process search driver.
+//! - [`report`]: the contents of `report.json`.
+//! - [`outcome`]: a reconstruction's outputs and its measures against a known truth.
 //! - [`commands`]: one module per subcommand.
 
 pub mod commands;
 pub mod engines;
 pub mod observation;
+pub mod outcome;
 pub mod picture;
+pub mod reconstruction;
+pub mod report;
 pub mod scene_source;
+pub mod search;
+pub mod seeds;
+pub mod similarity;

@@ -2,7 +2,9 @@
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
-use scatterfarm_coordinator::commands::{bench, render, scenes, show};
+use scatterfarm_coordinator::commands::{
+    adapters, bench, describe, reconstruct, render, scenes, show,
+};
 use tracing_subscriber::EnvFilter;
 
 /// Reconstructs what is inside a scattering medium from light measured at its boundary.
@@ -23,6 +25,12 @@ enum Command {
     Show(show::ShowArgs),
     /// List the built-in scenes, or print one as a scene file.
     Scenes(scenes::ScenesArgs),
+    /// Reconstruct a medium's material map from a target observation set.
+    Reconstruct(Box<reconstruct::ReconstructArgs>),
+    /// Write the JSON sidecar of a captured observation matrix.
+    Describe(describe::DescribeArgs),
+    /// List the GPU adapters the GPU engine can use.
+    Adapters(adapters::AdaptersArgs),
     /// Measure performance and write JSON.
     Bench(bench::BenchArgs),
 }
@@ -38,6 +46,9 @@ fn main() -> Result<()> {
         Command::Render(a) => render::run(a),
         Command::Show(a) => show::run(a),
         Command::Scenes(a) => scenes::run(a),
+        Command::Reconstruct(a) => reconstruct::run(*a),
+        Command::Describe(a) => describe::run(a),
+        Command::Adapters(a) => adapters::run(a),
         Command::Bench(a) => bench::run(a),
     }
 }

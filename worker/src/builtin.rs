@@ -1,5 +1,6 @@
-//! The built-in scenes: twelve 16×16 scenes modelled on the paper's Fig. 7 (a)–(l), and a coarse
-//! Shepp–Logan phantom (moderate background, mild object) at 16×16 and 128×128.
+//! The built-in scenes: twelve 16×16 scenes modelled on the paper's Fig. 7 (a)–(l), a coarse
+//! Shepp–Logan phantom (moderate background, mild object) at 16×16 and 128×128, and `demo8`, a
+//! small scene for a first reconstruction.
 //!
 //! The Fig. 7 scenes are TOML files in `worker/scenes/`, compiled in; the phantoms are
 //! rasterized here from the modified Shepp–Logan ellipses.
@@ -30,6 +31,12 @@ const FIG7: [(&str, &str, &str); 12] = [
     ("fig7l", "tunnel: mild background, opaque objects hidden behind a floating opaque block", include_str!("../scenes/fig7l.toml")),
 ];
 
+const DEMO: (&str, &str, &str) = (
+    "demo8",
+    "small 8x8 scene for a first reconstruction: moderate background, opaque block, back-scattering bar",
+    include_str!("../scenes/demo8.toml"),
+);
+
 const PHANTOMS: [(&str, &str, u32); 2] = [
     (
         "phantom16",
@@ -52,11 +59,18 @@ pub fn list() -> Vec<BuiltinInfo> {
                 .iter()
                 .map(|(name, description, _)| BuiltinInfo { name, description }),
         )
+        .chain(std::iter::once(BuiltinInfo {
+            name: DEMO.0,
+            description: DEMO.1,
+        }))
         .collect()
 }
 
 /// A built-in scene's TOML text, or `None` for an unknown name.
 pub fn toml(name: &str) -> Option<String> {
+    if name == DEMO.0 {
+        return Some(DEMO.2.to_string());
+    }
     if let Some((_, _, text)) = FIG7.iter().find(|(n, _, _)| *n == name) {
         return Some((*text).to_string());
     }
@@ -156,7 +170,11 @@ mod tests {
             let scene = scene(info.name)
                 .unwrap()
                 .unwrap_or_else(|e| panic!("{}: {e}", info.name));
-            let expected = if info.name == "phantom128" { 128 } else { 16 };
+            let expected = match info.name {
+                "phantom128" => 128,
+                "demo8" => 8,
+                _ => 16,
+            };
             assert_eq!(scene.geometry.grid, expected, "{}", info.name);
             assert!(scene.table.len() >= 2, "{} has one material", info.name);
         }

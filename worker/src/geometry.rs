@@ -2,7 +2,8 @@
 //! boundary, the ideal-ray sources and the (position, direction) bins photons land in.
 //!
 //! Everything here is pure arithmetic on `f64`; the edge-case rules (bin-edge snapping, corner
-//! exits) live in [`Geometry::bin_of_exit`] so every engine bins the same way.
+//! exits) live in [`Geometry::bin_of_exit`] so every engine bins the same way ([`ExitBins`] is
+//! the same function with its constants precomputed, for the CPU tracer).
 
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -232,6 +233,79 @@ impl Geometry {
     }
 }
 
+/// [`Geometry::bin_of_exit`] with its per-geometry constants worked out once, for tracers that
+/// bin one photon after another: no `atan2`, no division, no `round`/`floor` library calls.
+///
+/// The direction bin is found by comparing `sin β` with the sines of the snapped bin edges
+/// `β_m − δ` (`m = 1 … K−1`, `δ = BIN_SNAP·π/K`), which orders exits exactly as the snapped `u`
+/// does because `sin` increases on `(−π/2, π/2)`; a direction with `cos β ≤ 0` (only possible
+/// through rounding at grazing exits) falls back to [`Geometry::bin_of_exit`]. Both therefore
+/// agree except for `u` within rounding of a snapping threshold `m ± BIN_SNAP`.
+#[derive(Debug, Clone)]
+pub struct ExitBins {
+    geometry: Geometry,
+    inv_extent: f64,
+    /// `sin(β_m − δ)` for `m = 1 … K−1`, increasing.
+    thresholds: Vec<f64>,
+}
+
+impl ExitBins {
+    pub fn new(geometry: &Geometry) -> ExitBins {
+        let k = f64::from(geometry.directions);
+        let thresholds = (1..geometry.directions)
+            .map(|m| (-PI / 2.0 + (f64::from(m) - BIN_SNAP) * PI / k).sin())
+            .collect();
+        ExitBins {
+            geometry: *geometry,
+            inv_extent: 1.0 / geometry.extent(),
+            thresholds,
+        }
+    }
+
+    /// The bin of a photon leaving at arc length `s` with unit direction `d`; the same as
+    /// [`Geometry::bin_of_exit`] (see the type's note).
+    #[inline]
+    pub fn bin(&self, s: f64, d: [f64; 2]) -> usize {
+        let positions = i64::from(self.geometry.positions);
+        let u = s * self.inv_extent;
+        let mut p = if u >= 0.0 {
+            // u − ⌊u⌋ is exact here, so this is `snapped_floor` without library calls.
+            let f = u as i64;
+            let frac = u - f as f64;
+            if frac - 1.0 >= -BIN_SNAP {
+                f + 1
+            } else {
+                f
+            }
+        } else {
+            snapped_floor(u)
+        };
+        if p >= positions {
+            p -= positions;
+        }
+        let p = p.clamp(0, positions - 1);
+        // Outward normals: bottom (0,−1), right (1,0), top (0,1), left (−1,0).
+        let (cos_b, sin_b) = match p / (positions / 4) {
+            0 => (-d[1], d[0]),
+            1 => (d[0], d[1]),
+            2 => (d[1], -d[0]),
+            _ => (-d[0], -d[1]),
+        };
+        if cos_b <= 0.0 {
+            return self.geometry.bin_of_exit(s, d);
+        }
+        let k = if self.thresholds.len() <= 32 {
+            self.thresholds
+                .iter()
+                .map(|&t| usize::from(sin_b >= t))
+                .sum()
+        } else {
+            self.thresholds.partition_point(|&t| t <= sin_b)
+        };
+        (p as usize) * self.geometry.directions as usize + k
+    }
+}
+
 /// `⌊u⌋`, except that `u` within [`BIN_SNAP`] of a whole number counts as that number.
 pub fn snapped_floor(u: f64) -> i64 {
     let n = u.round();
@@ -313,6 +387,55 @@ mod tests {
         assert_eq!(g.bin_of_exit(2.0, d) % 3, 2);
         assert_eq!(snapped_floor(2.99995), 3);
         assert_eq!(snapped_floor(2.9998), 2);
+    }
+
+    /// The fast binner agrees with the reference on random exits and on every bin edge.
+    #[test]
+    fn exit_bins_agree_with_bin_of_exit() {
+        for g in [
+            Geometry::default(),
+            Geometry::new(16.0, 4, 16, 3).unwrap(),
+            Geometry::new(10.0, 4, 12, 4).unwrap(),
+            Geometry::new(16.0, 4, 4, 1).unwrap(),
+            Geometry::new(16.0, 4, 8, 40).unwrap(),
+        ] {
+            let fast = ExitBins::new(&g);
+            let w = g.size_mm;
+            let k = f64::from(g.directions);
+            let mut state = 0x9e37_79b9_7f4a_7c15u64;
+            let mut uniform = || {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                (state >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let check = |s: f64, beta: f64| {
+                let p = (snapped_floor(s / g.extent()).rem_euclid(i64::from(g.positions))) as u32;
+                let edge = Edge::from_index(p / (g.positions / 4));
+                let out = edge.inward().map(|c| -c);
+                let (sin_b, cos_b) = beta.sin_cos();
+                let d = [
+                    out[0] * cos_b - out[1] * sin_b,
+                    out[0] * sin_b + out[1] * cos_b,
+                ];
+                assert_eq!(fast.bin(s, d), g.bin_of_exit(s, d), "{g:?} s={s} β={beta}");
+            };
+            for _ in 0..20_000 {
+                check(4.0 * w * uniform(), (uniform() - 0.5) * PI);
+            }
+            // Exactly on, and just around, every position and direction edge.
+            for p in 0..=g.positions {
+                for m in 0..=g.directions {
+                    for ds in [-2e-4, -1e-4 + 1e-9, 0.0, 1e-4 - 1e-9, 2e-4] {
+                        for du in [-2e-4, -1e-4 + 1e-9, 0.0, 1e-4 - 1e-9, 2e-4] {
+                            let s = ((f64::from(p) + ds) * g.extent()).clamp(0.0, 4.0 * w);
+                            let u = (f64::from(m) + du).clamp(1e-6, k - 1e-6);
+                            check(s, -PI / 2.0 + u * PI / k);
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -7,11 +7,13 @@
 //! - [`phase`]: flatland Henyey–Greenstein sampling.
 //! - [`transport`]: one photon's path through the pixel grid.
 //! - [`engine`]: the `Engine` trait and render types; [`cpu`]: the rayon CPU engine.
+//! - [`gpu`]: the wgpu engine (WGSL compute shader in `shaders/`), adapters and their choice.
 
 pub mod builtin;
 pub mod cpu;
 pub mod engine;
 pub mod geometry;
+pub mod gpu;
 pub mod material;
 pub mod phase;
 pub mod rng;

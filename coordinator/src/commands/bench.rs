@@ -3,7 +3,7 @@
 //! The standard medium is the default geometry (16 mm, 16×16 pixels, 128 positions, 9
 //! directions) with every pixel `moderate`, 512 photons per source, seed 1.
 
-use crate::engines::{self, EngineChoice};
+use crate::engines::{self, EngineArgs, EngineChoice};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use cpu_time::ProcessTime;
@@ -23,6 +23,51 @@ pub struct BenchArgs {
 pub enum BenchWhat {
     /// Photons and scattering events per second (and per CPU-second) on the standard medium.
     Engine(EngineBenchArgs),
+    /// The quality table: reconstruct the twelve Fig. 7 scenes and report accuracy and cost.
+    Reconstruct(ReconstructBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ReconstructBenchArgs {
+    /// Also write the JSON here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Keep each scene's outputs (report, maps) under this folder.
+    #[arg(long)]
+    pub keep: Option<PathBuf>,
+    /// Scenes to run (default: fig7a … fig7l).
+    #[arg(long, value_delimiter = ',')]
+    pub scenes: Option<Vec<String>>,
+    #[arg(long, default_value_t = 16)]
+    pub grid: u32,
+    #[arg(long, default_value_t = 16)]
+    pub positions: u32,
+    #[arg(long, default_value_t = 3)]
+    pub directions: u32,
+    #[arg(long, default_value_t = 1)]
+    pub permutations: u32,
+    #[arg(long, default_value_t = 8)]
+    pub iterations: u32,
+    #[arg(long, default_value_t = 512)]
+    pub photons_per_iteration: u32,
+    #[arg(long, value_enum, default_value_t = crate::similarity::Metric::WithinEpsilon)]
+    pub metric: crate::similarity::Metric,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub engine: EngineArgs,
+}
+
+/// One scene's row of the quality table.
+#[derive(Debug, Clone, Serialize)]
+pub struct QualityRow {
+    pub scene: String,
+    pub pixel_accuracy: Option<f64>,
+    pub material_sse: Option<f64>,
+    pub similarity: f64,
+    pub renders: u64,
+    pub photons: u64,
+    pub wall_seconds: f64,
 }
 
 /// Engines `bench engine` can measure.
@@ -45,6 +90,9 @@ pub struct EngineBenchArgs {
     /// Photons per source.
     #[arg(long, default_value_t = 512)]
     pub photons: u32,
+    /// The GPU adapter: an index or part of a name (see `scatterfarm adapters`).
+    #[arg(long)]
+    pub adapter: Option<String>,
 }
 
 /// One engine's figures.
@@ -101,13 +149,112 @@ pub fn measure(engine: &dyn Engine, photons: u32) -> Result<EngineBench> {
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Engine(a) => run_engine(a),
+        BenchWhat::Reconstruct(a) => run_reconstruct(a),
     }
+}
+
+fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
+    use crate::commands::reconstruct::{self, ReconstructArgs};
+    let scenes = args.scenes.clone().unwrap_or_else(|| {
+        (b'a'..=b'l')
+            .map(|c| format!("fig7{}", c as char))
+            .collect()
+    });
+    let engine = args.engine.open()?;
+    let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
+    let mut rows = Vec::new();
+    eprintln!(
+        "{:<8} {:>9} {:>9} {:>10} {:>8} {:>14} {:>9}",
+        "scene", "accuracy", "SSE", "similarity", "renders", "photons", "seconds"
+    );
+    for scene in &scenes {
+        let out = match &args.keep {
+            Some(dir) => dir.join(scene),
+            None => scratch.path().join(scene),
+        };
+        // The paper searched 7i with all six materials.
+        let dictionary = (scene == "fig7i").then(|| {
+            scatterfarm_worker::material::BUILTIN_MATERIALS
+                .iter()
+                .map(|(n, _)| n.to_string())
+                .collect()
+        });
+        let r = ReconstructArgs {
+            scene: Some(scene.clone()),
+            target: None,
+            calibration: None,
+            calibration_material: None,
+            dictionary,
+            random_materials: None,
+            bounds: None,
+            permutations: args.permutations,
+            iterations: args.iterations,
+            photons_per_iteration: args.photons_per_iteration,
+            target_photons: None,
+            percentile: 99.9,
+            metric: args.metric,
+            grid: Some(args.grid),
+            positions: Some(args.positions),
+            directions: Some(args.directions),
+            seed: args.seed,
+            engine: args.engine.clone(),
+            out: out.clone(),
+            quiet: true,
+        };
+        let prepared = reconstruct::prepare(&r, engine.as_ref())?;
+        let report = reconstruct::run_prepared(prepared, engine.as_ref(), &out, true)?;
+        let row = QualityRow {
+            scene: scene.clone(),
+            pixel_accuracy: report.pixel_accuracy,
+            material_sse: report.material_sse,
+            similarity: report.similarity,
+            renders: report.renders,
+            photons: report.photons,
+            wall_seconds: report.wall_seconds,
+        };
+        eprintln!(
+            "{:<8} {:>8.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1}",
+            row.scene,
+            row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+            row.material_sse.unwrap_or(f64::NAN),
+            row.similarity,
+            row.renders,
+            row.photons,
+            row.wall_seconds
+        );
+        rows.push(row);
+    }
+    let json = serde_json::json!({
+        "engine": engine.fingerprint().to_string(),
+        "geometry": { "grid": args.grid, "positions": args.positions, "directions": args.directions },
+        "permutations": args.permutations,
+        "iterations": args.iterations,
+        "photons_per_iteration": args.photons_per_iteration,
+        "metric": args.metric,
+        "seed": args.seed,
+        "scenes": rows,
+        "total_photons": rows.iter().map(|r| r.photons).sum::<u64>(),
+        "total_wall_seconds": rows.iter().map(|r| r.wall_seconds).sum::<f64>(),
+        "mean_pixel_accuracy": rows.iter().filter_map(|r| r.pixel_accuracy).sum::<f64>() / rows.len().max(1) as f64,
+    });
+    let text = serde_json::to_string_pretty(&json)?;
+    println!("{text}");
+    if let Some(out) = &args.out {
+        crate::observation::write_atomically(out, |w| Ok(w.write_all(text.as_bytes())?))?;
+        eprintln!("wrote {}", out.display());
+    }
+    Ok(())
 }
 
 fn run_engine(args: EngineBenchArgs) -> Result<()> {
     anyhow::ensure!(args.photons > 0, "--photons must be at least 1");
     let measure_choice = |choice| -> Result<EngineBench> {
-        let engine = engines::open(choice)?;
+        let adapter = if choice == EngineChoice::Cpu {
+            None
+        } else {
+            args.adapter.as_deref()
+        };
+        let engine = engines::open(choice, adapter)?;
         let result = measure(engine.as_ref(), args.photons)?;
         eprintln!(
             "{} ({}): {:.2} M photons/s, {:.2} M scattering events per CPU-second",

@@ -1,12 +1,12 @@
 //! `scatterfarm render SCENE --out OBS.npy`: the observation set of a scene, with its sidecar.
 
-use crate::engines::{self, EngineChoice};
+use crate::engines::{self, EngineArgs};
 use crate::observation::{self, Sidecar};
 use crate::scene_source;
 use anyhow::{ensure, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use scatterfarm_worker::{CountMatrix, Engine, PhotonRange, RenderBatch, RenderItem, Scene};
+use scatterfarm_worker::{CountMatrix, Engine, RenderItem, Scene};
 use std::path::PathBuf;
 
 #[derive(Debug, Args)]
@@ -22,9 +22,8 @@ pub struct RenderArgs {
     /// The render seed: the same seed and engine give identical counts.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Which engine renders.
-    #[arg(long, value_enum, default_value_t = EngineChoice::Auto)]
-    pub engine: EngineChoice,
+    #[command(flatten)]
+    pub engine: EngineArgs,
 }
 
 /// Counts of one scene over photons `[0, photons)`, rendered in chunks so a progress bar can
@@ -36,40 +35,32 @@ pub fn render_scene(
     seed: u64,
     bar: &ProgressBar,
 ) -> Result<(CountMatrix, u64)> {
-    let table = scene.table.physics();
     let items = [RenderItem {
         assignment: scene.assignment.clone(),
         seed,
     }];
-    let chunk = (photons / 100).max(256).min(photons.max(1));
-    let mut total = CountMatrix::zeros(scene.geometry.sources(), scene.geometry.bins());
-    let mut scatters = 0;
-    let mut first = 0u32;
-    while first < photons {
-        let count = chunk.min(photons - first);
-        let batch = RenderBatch {
-            geometry: scene.geometry,
-            table: &table,
-            items: &items,
-            photons: PhotonRange { first, count },
-        };
-        let out = engine.render(&batch)?;
-        let out = out
-            .into_iter()
-            .next()
-            .context("the engine returned no result")?;
-        total.add(&out.counts)?;
-        scatters += out.scatter_events;
-        first += count;
-        bar.inc(u64::from(count));
-    }
-    Ok((total, scatters))
+    let chunk = (photons / 100).max(256);
+    let rendered = engines::render_in_chunks(
+        engine,
+        scene.geometry,
+        &scene.table.physics(),
+        &items,
+        photons,
+        chunk,
+        &mut |n| bar.inc(u64::from(n)),
+    )?;
+    let counts = rendered
+        .counts
+        .into_iter()
+        .next()
+        .context("the engine returned no result")?;
+    Ok((counts, rendered.scatter_events))
 }
 
 pub fn run(args: RenderArgs) -> Result<()> {
     ensure!(args.photons > 0, "--photons must be at least 1");
     let loaded = scene_source::load(&args.scene)?;
-    let engine = engines::open(args.engine)?;
+    let engine = args.engine.open()?;
     let fingerprint = engine.fingerprint();
     let geometry = loaded.scene.geometry;
     tracing::info!(scene = %loaded.origin, engine = %fingerprint, "rendering {} sources × {} photons", geometry.sources(), args.photons);

@@ -11,7 +11,7 @@ use crate::transport::{trace_photon, Fate, Medium};
 use rayon::prelude::*;
 
 /// Bumped whenever a change to the CPU transport changes its counts.
-pub const CPU_ENGINE_VERSION: &str = "cpu-1";
+pub const CPU_ENGINE_VERSION: &str = "cpu-2";
 
 /// The rayon-parallel CPU engine.
 #[derive(Debug, Clone, Default)]

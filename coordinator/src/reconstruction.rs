@@ -1,0 +1,198 @@
+//! Running a reconstruction in one process: synthesizing a target, calibrating ε, and driving
+//! the [`Search`] state machine against an [`Engine`].
+//!
+//! Every render the search asks for is rendered as one batch (all candidates of a step at once)
+//! over the search's photon budget, in chunks of one iteration's photons, then scored.
+
+use crate::engines::render_in_chunks;
+use crate::search::Search;
+use crate::seeds::{self, Stream};
+use crate::similarity::{self, Metric, Target};
+use anyhow::{Context, Result};
+use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem, Scene};
+use serde::{Deserialize, Serialize};
+
+/// The photon budget of a search (`model.md`, "Budget").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Budget {
+    pub iterations: u32,
+    pub photons_per_iteration: u32,
+}
+
+impl Budget {
+    /// Photons per source of every search render.
+    pub fn photons_per_source(&self) -> Result<u32> {
+        self.iterations
+            .checked_mul(self.photons_per_iteration)
+            .filter(|&p| p > 0)
+            .context("iterations × photons per iteration must be between 1 and 2³²−1")
+    }
+}
+
+/// What the search scores against.
+#[derive(Debug, Clone)]
+pub struct Scoring {
+    /// The search's geometry: the target's boundary sampling at the search grid.
+    pub geometry: Geometry,
+    pub target: Target,
+    pub metric: Metric,
+    pub epsilon: f64,
+    pub budget: Budget,
+}
+
+/// What the search consumed.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Consumption {
+    pub renders: u64,
+    /// Photons launched by search renders, over all sources.
+    pub photons: u64,
+    pub scatter_events: u64,
+}
+
+/// Renders one homogeneous or heterogeneous assignment in full and returns its counts.
+pub fn render_one(
+    engine: &dyn Engine,
+    geometry: Geometry,
+    table: &[Material],
+    assignment: Vec<u16>,
+    seed: u64,
+    photons: u32,
+) -> Result<CountMatrix> {
+    let items = [RenderItem { assignment, seed }];
+    let chunk = photons.clamp(1, 65_536);
+    let rendered = render_in_chunks(engine, geometry, table, &items, photons, chunk, &mut |_| {})?;
+    rendered
+        .counts
+        .into_iter()
+        .next()
+        .context("the engine returned no result")
+}
+
+/// The synthesized target of `scene` (stream `target`).
+pub fn synthesize_target(
+    engine: &dyn Engine,
+    scene: &Scene,
+    photons: u32,
+    job_seed: u64,
+) -> Result<Target> {
+    let seed = seeds::derive(job_seed, Stream::Target);
+    let counts = render_one(
+        engine,
+        scene.geometry,
+        &scene.table.physics(),
+        scene.assignment.clone(),
+        seed,
+        photons,
+    )?;
+    Ok(Target {
+        values: similarity::fractions(&counts, u64::from(photons)),
+        photons_per_source: u64::from(photons),
+    })
+}
+
+/// How ε is calibrated (`model.md`, "Calibration of ε").
+#[derive(Debug, Clone, Copy)]
+pub struct Calibration<'a> {
+    /// The homogeneous material.
+    pub material: Material,
+    /// The material as the target sees it: a capture, or `None` to render it with the
+    /// target's photons (stream `calibration-target`).
+    pub reference: Option<&'a [f32]>,
+    pub target_photons: u32,
+    pub search_photons: u32,
+    /// ε is this percentile of the absolute differences.
+    pub percentile: f64,
+}
+
+/// ε from a homogeneous render pair: the reference against a render at the search's budget
+/// (stream `calibration-search`).
+pub fn calibrate(
+    engine: &dyn Engine,
+    geometry: Geometry,
+    c: &Calibration<'_>,
+    job_seed: u64,
+) -> Result<f64> {
+    let homogeneous = vec![0u16; geometry.pixels()];
+    let rendered_reference;
+    let reference = match c.reference {
+        Some(r) => r,
+        None => {
+            let seed = seeds::derive(job_seed, Stream::CalibrationTarget);
+            let counts = render_one(
+                engine,
+                geometry,
+                &[c.material],
+                homogeneous.clone(),
+                seed,
+                c.target_photons,
+            )?;
+            rendered_reference = similarity::fractions(&counts, u64::from(c.target_photons));
+            &rendered_reference
+        }
+    };
+    let seed = seeds::derive(job_seed, Stream::CalibrationSearch);
+    let counts = render_one(
+        engine,
+        geometry,
+        &[c.material],
+        homogeneous,
+        seed,
+        c.search_photons,
+    )?;
+    let search = similarity::fractions(&counts, u64::from(c.search_photons));
+    Ok(similarity::epsilon(reference, &search, c.percentile)?)
+}
+
+/// Runs the search to its end, calling `on_step` after every scored step and `on_photons`
+/// as photons are rendered (photons per source × items).
+pub fn drive(
+    search: &mut Search,
+    engine: &dyn Engine,
+    scoring: &Scoring,
+    on_step: &mut dyn FnMut(&Search, &Consumption),
+    on_photons: &mut dyn FnMut(u64),
+) -> Result<Consumption> {
+    let photons = scoring.budget.photons_per_source()?;
+    let sources = scoring.geometry.sources() as u64;
+    let mut used = Consumption::default();
+    while !search.is_finished() {
+        let items: Vec<RenderItem> = search
+            .pending()
+            .iter()
+            .map(|r| RenderItem {
+                assignment: r.assignment.clone(),
+                seed: r.seed,
+            })
+            .collect();
+        let table = search.materials();
+        let n_items = items.len() as u64;
+        let rendered = render_in_chunks(
+            engine,
+            scoring.geometry,
+            &table,
+            &items,
+            photons,
+            scoring.budget.photons_per_iteration.max(1),
+            &mut |n| on_photons(u64::from(n) * n_items * sources),
+        )?;
+        let scores = rendered
+            .counts
+            .iter()
+            .map(|c| {
+                similarity::score(
+                    scoring.metric,
+                    &scoring.target,
+                    c,
+                    u64::from(photons),
+                    scoring.epsilon,
+                )
+            })
+            .collect::<Result<Vec<f64>, _>>()?;
+        used.renders += n_items;
+        used.photons += n_items * sources * u64::from(photons);
+        used.scatter_events += rendered.scatter_events;
+        search.submit(&scores)?;
+        on_step(search, &used);
+    }
+    Ok(used)
+}

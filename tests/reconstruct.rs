@@ -1,0 +1,275 @@
+//! `scatterfarm reconstruct` end to end with the CPU engine at a small geometry (grid 4,
+//! 16 positions, 3 directions): real searches that must find the truth, determinism by seed,
+//! and unknown-materials mode.
+
+use std::path::Path;
+use std::process::Command;
+
+const TWO: &str = r##"
+[geometry]
+grid = 4
+positions = 16
+directions = 3
+[map]
+legend = { "." = "moderate", "#" = "opaque" }
+rows = ["....", ".##.", ".##.", "...."]
+"##;
+
+const THREE: &str = r##"
+[geometry]
+grid = 4
+positions = 16
+directions = 3
+[map]
+legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
+rows = ["oo..", "oo..", "...b", "..bb"]
+"##;
+
+fn reconstruct(dir: &Path, scene: &str, out: &str, extra: &[&str]) -> serde_json::Value {
+    let scene_path = dir.join(format!("{out}.toml"));
+    std::fs::write(&scene_path, scene).unwrap();
+    let status = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
+        .args(["reconstruct", "--scene"])
+        .arg(&scene_path)
+        .args(["--engine", "cpu", "--quiet", "--out"])
+        .arg(dir.join(out))
+        .args(extra)
+        .env("RUST_LOG", "warn")
+        .status()
+        .unwrap();
+    assert!(status.success());
+    serde_json::from_slice(&std::fs::read(dir.join(out).join("report.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn two_and_three_material_scenes_are_found_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, scene) in [("two", TWO), ("three", THREE)] {
+        let report = reconstruct(
+            dir.path(),
+            scene,
+            name,
+            &["--iterations", "32", "--permutations", "3"],
+        );
+        assert_eq!(report["pixel_accuracy"], 1.0, "{name}: {report:#}");
+        assert_eq!(report["material_sse"], 0.0);
+        for file in [
+            "materials.npy",
+            "materials.json",
+            "reconstruction.png",
+            "maps.png",
+        ] {
+            assert!(
+                dir.path().join(name).join(file).is_file(),
+                "{name}/{file} missing"
+            );
+        }
+        // Level results run 0, 1, 2 and the search's photons are its renders' photons.
+        let levels = report["levels"].as_array().unwrap();
+        assert_eq!(levels.len(), 3);
+        let renders = report["renders"].as_u64().unwrap();
+        assert_eq!(report["photons"].as_u64().unwrap(), renders * 48 * 32 * 512);
+    }
+}
+
+#[test]
+fn the_seed_fixes_the_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let quick = ["--iterations", "2", "--permutations", "2"];
+    let a = reconstruct(
+        dir.path(),
+        THREE,
+        "a",
+        &[&quick[..], &["--seed", "5"]].concat(),
+    );
+    let b = reconstruct(
+        dir.path(),
+        THREE,
+        "b",
+        &[&quick[..], &["--seed", "5"]].concat(),
+    );
+    let c = reconstruct(
+        dir.path(),
+        THREE,
+        "c",
+        &[&quick[..], &["--seed", "6"]].concat(),
+    );
+    let npy = |d: &str| std::fs::read(dir.path().join(d).join("materials.npy")).unwrap();
+    assert_eq!(npy("a"), npy("b"));
+    let strip = |mut v: serde_json::Value| {
+        let o = v.as_object_mut().unwrap();
+        o.remove("wall_seconds");
+        o["configuration"].as_object_mut().unwrap().remove("scene");
+        v
+    };
+    assert_eq!(strip(a.clone()), strip(b));
+    // Another seed draws other streams: another calibration, other permutations.
+    assert_ne!(a["epsilon"], c["epsilon"]);
+}
+
+#[test]
+fn unknown_materials_improve_on_their_level_zero_answer() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = THREE.replace("\"o\" = \"opaque\"", "\"o\" = \"mild\"");
+    let report = reconstruct(
+        dir.path(),
+        &scene,
+        "random",
+        &[
+            "--random-materials",
+            "4",
+            "--iterations",
+            "8",
+            "--permutations",
+            "2",
+            "--calibration-material",
+            "moderate",
+        ],
+    );
+    let levels = report["levels"].as_array().unwrap();
+    let first = levels[0]["material_sse"].as_f64().unwrap();
+    let last = report["material_sse"].as_f64().unwrap();
+    assert!(last < first, "SSE {last} is not below level 0's {first}");
+    let table: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("random/materials.json")).unwrap())
+            .unwrap();
+    assert_eq!(table["materials"].as_array().unwrap().len(), 4 * 3);
+}
+
+fn run(dir: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
+        .args(args)
+        .current_dir(dir)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn a_captured_target_is_reconstructed_from_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("two.toml"), TWO).unwrap();
+    std::fs::write(d.join("flat.toml"), TWO.replace(".##.", "....")).unwrap();
+    // "Captures": a render of the unknown medium and one of a known homogeneous material.
+    assert!(run(
+        d,
+        &[
+            "render",
+            "two.toml",
+            "--out",
+            "capture.npy",
+            "--photons",
+            "16384",
+            "--seed",
+            "9",
+            "--engine",
+            "cpu"
+        ]
+    )
+    .status
+    .success());
+    assert!(run(
+        d,
+        &[
+            "render",
+            "flat.toml",
+            "--out",
+            "cal.npy",
+            "--photons",
+            "16384",
+            "--seed",
+            "10",
+            "--engine",
+            "cpu"
+        ]
+    )
+    .status
+    .success());
+
+    // A capture without a sidecar gets one from `describe`, checked against the matrix shape.
+    std::fs::copy(d.join("capture.npy"), d.join("bare.npy")).unwrap();
+    let wrong = run(
+        d,
+        &[
+            "describe",
+            "bare.npy",
+            "--size-mm",
+            "16",
+            "--positions",
+            "12",
+            "--directions",
+            "3",
+            "--photons",
+            "16384",
+        ],
+    );
+    assert!(!wrong.status.success());
+    assert!(String::from_utf8_lossy(&wrong.stderr).contains("needs [36, 36]"));
+    assert!(!d.join("bare.json").exists());
+    let ok = run(
+        d,
+        &[
+            "describe",
+            "bare.npy",
+            "--size-mm",
+            "16",
+            "--positions",
+            "16",
+            "--directions",
+            "3",
+            "--photons",
+            "16384",
+        ],
+    );
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let side: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(d.join("bare.json")).unwrap()).unwrap();
+    assert_eq!(side["format"], "scatterfarm-observation/1");
+    assert_eq!(side["photons_per_source"], 16384);
+
+    let out = run(
+        d,
+        &[
+            "reconstruct",
+            "--target",
+            "bare.npy",
+            "--calibration",
+            "cal.npy",
+            "--calibration-material",
+            "moderate",
+            "--dictionary",
+            "moderate,opaque",
+            "--grid",
+            "4",
+            "--iterations",
+            "32",
+            "--permutations",
+            "2",
+            "--engine",
+            "cpu",
+            "--quiet",
+            "--out",
+            "captured",
+        ],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(d.join("captured/report.json")).unwrap()).unwrap();
+    // No truth is known: no accuracy, but the map is the scene's.
+    assert!(report["pixel_accuracy"].is_null());
+    let npy = std::fs::read(d.join("captured/materials.npy")).unwrap();
+    let map: Vec<u16> = npy[npy.len() - 32..]
+        .chunks(2)
+        .map(|b| u16::from_le_bytes([b[0], b[1]]))
+        .collect();
+    assert_eq!(map, vec![0, 0, 0, 0, 0, 1, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0]);
+}
