@@ -186,3 +186,36 @@ fn help_answers() {
     let help = ok(&scatterfarm(&["render", "--help"], dir.path()));
     assert!(help.contains("--photons") && help.contains("--seed") && help.contains("--engine"));
 }
+
+#[test]
+fn an_interrupted_render_leaves_no_file_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
+        .args([
+            "render",
+            "phantom128",
+            "--out",
+            "obs.npy",
+            "--photons",
+            "1000000",
+            "--engine",
+            "cpu",
+        ])
+        .current_dir(dir.path())
+        .env("RUST_LOG", "warn")
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "the render finished too soon to interrupt"
+    );
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
