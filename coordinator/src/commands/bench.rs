@@ -237,13 +237,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         "total_wall_seconds": rows.iter().map(|r| r.wall_seconds).sum::<f64>(),
         "mean_pixel_accuracy": rows.iter().filter_map(|r| r.pixel_accuracy).sum::<f64>() / rows.len().max(1) as f64,
     });
-    let text = serde_json::to_string_pretty(&json)?;
-    println!("{text}");
-    if let Some(out) = &args.out {
-        crate::observation::write_atomically(out, |w| Ok(w.write_all(text.as_bytes())?))?;
-        eprintln!("wrote {}", out.display());
-    }
-    Ok(())
+    emit(&json, args.out.as_deref())
 }
 
 fn run_engine(args: EngineBenchArgs) -> Result<()> {
@@ -280,9 +274,14 @@ fn run_engine(args: EngineBenchArgs) -> Result<()> {
             })
         }
     };
-    let text = serde_json::to_string_pretty(&json)?;
+    emit(&json, args.out.as_deref())
+}
+
+/// Prints the JSON on stdout and, when asked, writes it to `out` as well.
+fn emit(json: &serde_json::Value, out: Option<&std::path::Path>) -> Result<()> {
+    let text = serde_json::to_string_pretty(json)?;
     println!("{text}");
-    if let Some(out) = &args.out {
+    if let Some(out) = out {
         crate::observation::write_atomically(out, |w| Ok(w.write_all(text.as_bytes())?))?;
         eprintln!("wrote {}", out.display());
     }

@@ -147,8 +147,8 @@ grid = 8
 positions = 16
 directions = 3
 [map]
-legend = { "X" = "opaque", "." = "moderate", "-" = "transmissive" }
-rows = ["XXXXXXXX", "X......X", "X.-----X", "X.-..-.X", "X......X", "X..--..X", "X......X", "XXXXXXXX"]
+legend = { "o" = "opaque", "." = "moderate", "-" = "transmissive" }
+rows = ["oooooooo", "o......o", "o.-----o", "o.-..-.o", "o......o", "o..--..o", "o......o", "oooooooo"]
 "##;
     let s = Scene::from_toml(text).unwrap();
     let counts = render(

@@ -112,6 +112,20 @@ impl GpuEngine {
     /// adapter and why. [`EngineError::Unavailable`] when there is no such adapter (the caller
     /// may fall back to the CPU engine), [`EngineError::Device`] when the device fails.
     pub fn new(selector: &AdapterSelector) -> Result<GpuEngine, EngineError> {
+        Self::select(selector, true)
+    }
+
+    /// The engine on the adapter `selector` picks, with 64-bit integer multiplies in the shader
+    /// only when `int64` is set and the device has them (tests compare both shader variants).
+    #[cfg(test)]
+    pub(crate) fn with_int64(
+        selector: &AdapterSelector,
+        int64: bool,
+    ) -> Result<GpuEngine, EngineError> {
+        Self::select(selector, int64)
+    }
+
+    fn select(selector: &AdapterSelector, int64: bool) -> Result<GpuEngine, EngineError> {
         let instance = new_instance();
         let adapters = enumerate(&instance);
         let infos: Vec<AdapterInfo> = adapters
@@ -126,25 +140,7 @@ impl GpuEngine {
         let (index, why) = choose(&infos, &pci, selector)?;
         let info = infos[index].clone();
         tracing::info!("GPU engine on adapter {info}: {why}");
-        Self::open(&adapters[index], info, true)
-    }
-
-    /// The engine on the adapter `selector` picks, with 64-bit integer multiplies in the shader
-    /// only when `int64` is set and the device has them (tests compare both shader variants).
-    #[cfg(test)]
-    pub(crate) fn with_int64(
-        selector: &AdapterSelector,
-        int64: bool,
-    ) -> Result<GpuEngine, EngineError> {
-        let instance = new_instance();
-        let adapters = enumerate(&instance);
-        let infos: Vec<AdapterInfo> = adapters
-            .iter()
-            .enumerate()
-            .map(|(i, a)| AdapterInfo::from_wgpu(i, a))
-            .collect();
-        let (index, _) = choose(&infos, &[], selector)?;
-        Self::open(&adapters[index], infos[index].clone(), int64)
+        Self::open(&adapters[index], info, int64)
     }
 
     /// True when the shader multiplies with 64-bit integers (the device has `SHADER_INT64`);
