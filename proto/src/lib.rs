@@ -1,7 +1,13 @@
 //! The scatterfarm gRPC protocol: all generated code lives in this crate.
 //!
-//! `v1` is the package `scatterfarm.v1` of `proto/scatterfarm/v1/farm.proto`. Payloads that carry
-//! count matrices are `bytes::Bytes`, so large results are not copied on the way through.
+//! `v1` is the package `scatterfarm.v1` of `proto/scatterfarm/v1/farm.proto`. Every `bytes` field
+//! is `bytes::Bytes`, so large count matrices are not copied on the way through.
+//!
+//! Beside the generated code, [`auth`] holds the shared-token check both ends agree on, and
+//! [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
+
+pub mod auth;
+pub mod channel;
 
 /// Package `scatterfarm.v1`.
 pub mod v1 {
@@ -9,4 +15,12 @@ pub mod v1 {
 
     /// The protocol version this build speaks.
     pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 0 };
+
+    /// Messages up to this size are accepted and sent (a default-size count matrix is 5.3 MB;
+    /// a task result carries one per assignment).
+    pub const MAX_MESSAGE_BYTES: usize = 1 << 30;
+
+    /// The encoded descriptor set of the package, for gRPC reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        include_bytes!(concat!(env!("OUT_DIR"), "/scatterfarm_descriptor.bin"));
 }

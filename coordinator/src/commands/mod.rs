@@ -2,6 +2,7 @@
 
 pub mod adapters;
 pub mod bench;
+pub mod connect;
 pub mod describe;
 pub mod reconstruct;
 pub mod render;
