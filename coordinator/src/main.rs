@@ -1,9 +1,9 @@
-//! `scatterfarm`: render, draw and (in later versions) reconstruct scattering media.
+//! `scatterfarm`: render, draw and reconstruct scattering media, alone or as a farm.
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use scatterfarm_coordinator::commands::{
-    adapters, bench, describe, reconstruct, render, scenes, show,
+    adapters, bench, coordinator, demo, describe, jobs, reconstruct, render, scenes, show,
 };
 use tracing_subscriber::EnvFilter;
 
@@ -19,6 +19,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Reconstruct a built-in scene with a coordinator and a worker in this process (start here).
+    Demo(demo::DemoArgs),
     /// Render a scene's observation set (a P·K × P·K float32 NPY plus a JSON sidecar).
     Render(render::RenderArgs),
     /// Draw a scene's material map or an observation file as a PNG.
@@ -33,6 +35,26 @@ enum Command {
     Adapters(adapters::AdaptersArgs),
     /// Measure performance and write JSON.
     Bench(bench::BenchArgs),
+    /// Serve the farm: workers lease render tasks, clients submit jobs.
+    Coordinator(coordinator::CoordinatorArgs),
+    /// Render tasks for a coordinator on this host's engine.
+    // Worker(worker::WorkerArgs),
+    /// Submit a job file to a coordinator; prints the job id.
+    Submit(jobs::SubmitArgs),
+    /// Show a job's state and progress.
+    Status(jobs::StatusArgs),
+    /// Follow a job's progress until it ends.
+    Watch(jobs::JobArgs),
+    /// Fetch a job's outputs (its current best, marked partial, while it runs).
+    Result(jobs::ResultArgs),
+    /// Stop a job.
+    Cancel(jobs::JobArgs),
+    /// Remove a job and its results from the coordinator.
+    Delete(jobs::JobArgs),
+    /// List the coordinator's jobs.
+    Jobs(jobs::ListArgs),
+    /// List the workers registered with the coordinator.
+    Workers(jobs::ListArgs),
 }
 
 fn main() -> Result<()> {
@@ -50,5 +72,16 @@ fn main() -> Result<()> {
         Command::Describe(a) => describe::run(a),
         Command::Adapters(a) => adapters::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Demo(a) => demo::run(a),
+        Command::Coordinator(a) => coordinator::run(a),
+        // Command::Worker(a) => worker::run(a),
+        Command::Submit(a) => jobs::run_submit(a),
+        Command::Status(a) => jobs::run_status(a),
+        Command::Watch(a) => jobs::run_watch(a),
+        Command::Result(a) => jobs::run_result(a),
+        Command::Cancel(a) => jobs::run_cancel(a),
+        Command::Delete(a) => jobs::run_delete(a),
+        Command::Jobs(a) => jobs::run_jobs(a),
+        Command::Workers(a) => jobs::run_workers(a),
     }
 }

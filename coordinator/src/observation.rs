@@ -119,18 +119,25 @@ pub fn write(path: &Path, observation: &Array2<f32>, sidecar: &Sidecar) -> Resul
     })
 }
 
-/// Reads an observation file and its sidecar, checking that they agree.
+/// Reads an observation file and its sidecar from disk.
 pub fn read(path: &Path) -> Result<(Array2<f32>, Sidecar)> {
     let side = sidecar_path(path);
-    let text = std::fs::read_to_string(&side).with_context(|| {
+    let sidecar = std::fs::read(&side).with_context(|| {
         format!(
             "cannot read the sidecar {} of {} (write one with `scatterfarm describe`)",
             side.display(),
             path.display()
         )
     })?;
+    let npy = std::fs::read(path).with_context(|| format!("cannot open {}", path.display()))?;
+    read_bytes(&npy, &sidecar, path)
+}
+
+/// Parses an observation file from its bytes and its sidecar's; `path` names it in errors.
+pub fn read_bytes(npy: &[u8], sidecar: &[u8], path: &Path) -> Result<(Array2<f32>, Sidecar)> {
+    let side = sidecar_path(path);
     let sidecar: Sidecar =
-        serde_json::from_str(&text).with_context(|| format!("sidecar {}", side.display()))?;
+        serde_json::from_slice(sidecar).with_context(|| format!("sidecar {}", side.display()))?;
     if sidecar.format != FORMAT {
         bail!(
             "{}: format is {:?}, expected {FORMAT:?}",
@@ -138,9 +145,7 @@ pub fn read(path: &Path) -> Result<(Array2<f32>, Sidecar)> {
             sidecar.format
         );
     }
-    let file =
-        std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
-    let data = Array2::<f32>::read_npy(std::io::BufReader::new(file))
+    let data = Array2::<f32>::read_npy(npy)
         .with_context(|| format!("{} is not a 2-D float32 NPY", path.display()))?;
     let n = sidecar.sources();
     if data.shape() != [n, n] {

@@ -280,3 +280,78 @@ mod tests {
         assert_eq!(upsample(&[1, 2, 3, 4], 2, 4)[..8], [1, 1, 2, 2, 1, 1, 2, 2]);
     }
 }
+
+/// Everything a reconstruction's outputs are made from.
+pub struct Summary<'a> {
+    pub config: &'a crate::report::Configuration,
+    pub truth: Option<&'a Scene>,
+    pub search: &'a crate::search::Search,
+    /// The map to write (the final result, or the current best of a running search).
+    pub assignment: &'a [u16],
+    pub similarity: f64,
+    pub epsilon: f64,
+    pub used: crate::reconstruction::Consumption,
+    /// Photons of target and calibration renders.
+    pub setup_photons: u64,
+    pub wall_seconds: f64,
+    pub engine: String,
+    pub reproducible: bool,
+}
+
+/// Writes `report.json`, `materials.npy`, `materials.json`, `reconstruction.png` and `maps.png`
+/// into `out` (created if missing) and returns the report.
+pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Report> {
+    use crate::report::{LevelReport, Report};
+    let grid = s.config.grid as usize;
+    let table = s.search.table();
+    let measures = |a: &[u16]| {
+        s.truth.map(|t| {
+            (
+                pixel_accuracy(a, grid, table, t),
+                material_sse(a, grid, table, t),
+            )
+        })
+    };
+    let levels = s
+        .search
+        .levels()
+        .iter()
+        .map(|l| {
+            let m = measures(&l.assignment);
+            LevelReport {
+                level: l.level,
+                similarity: l.score,
+                pixel_accuracy: m.map(|m| m.0),
+                material_sse: m.map(|m| m.1),
+            }
+        })
+        .collect();
+    let m = measures(s.assignment);
+    let report = Report {
+        pixel_accuracy: m.map(|m| m.0),
+        material_sse: m.map(|m| m.1),
+        similarity: s.similarity,
+        epsilon: s.epsilon,
+        renders: s.used.renders,
+        photons: s.used.photons,
+        photons_simulated: s.used.photons + s.setup_photons,
+        wall_seconds: s.wall_seconds,
+        engine: s.engine.clone(),
+        seed: s.config.seed,
+        reproducible: s.reproducible,
+        configuration: s.config.clone(),
+        levels,
+    };
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    write_materials(out, s.assignment, grid, table)?;
+    write_reconstruction_png(
+        &out.join("reconstruction.png"),
+        s.assignment,
+        grid,
+        table,
+        s.truth,
+    )?;
+    write_maps_png(&out.join("maps.png"), s.assignment, grid, table)?;
+    write_json(&out.join("report.json"), &report)?;
+    Ok(report)
+}

@@ -1,15 +1,15 @@
-//! Running a reconstruction in one process: synthesizing a target, calibrating ε, and driving
-//! the [`Search`] state machine against an [`Engine`].
+//! Running a reconstruction in one process: rendering a [`Plan`]'s target and calibration, and
+//! driving the [`Search`] state machine against an [`Engine`].
 //!
 //! Every render the search asks for is rendered as one batch (all candidates of a step at once)
 //! over the search's photon budget, in chunks of one iteration's photons, then scored.
 
 use crate::engines::render_in_chunks;
 use crate::search::Search;
-use crate::seeds::{self, Stream};
+use crate::plan::{Plan, SetupCounts};
 use crate::similarity::{self, Metric, Target};
 use anyhow::{Context, Result};
-use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem, Scene};
+use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem};
 use serde::{Deserialize, Serialize};
 
 /// The photon budget of a search (`model.md`, "Budget").
@@ -68,79 +68,33 @@ pub fn render_one(
         .context("the engine returned no result")
 }
 
-/// The synthesized target of `scene` (stream `target`).
-pub fn synthesize_target(
-    engine: &dyn Engine,
-    scene: &Scene,
-    photons: u32,
-    job_seed: u64,
-) -> Result<Target> {
-    let seed = seeds::derive(job_seed, Stream::Target);
-    let counts = render_one(
-        engine,
-        scene.geometry,
-        &scene.table.physics(),
-        scene.assignment.clone(),
-        seed,
-        photons,
-    )?;
-    Ok(Target {
-        values: similarity::fractions(&counts, u64::from(photons)),
-        photons_per_source: u64::from(photons),
-    })
-}
-
-/// How ε is calibrated (`model.md`, "Calibration of ε").
-#[derive(Debug, Clone, Copy)]
-pub struct Calibration<'a> {
-    /// The homogeneous material.
-    pub material: Material,
-    /// The material as the target sees it: a capture, or `None` to render it with the
-    /// target's photons (stream `calibration-target`).
-    pub reference: Option<&'a [f32]>,
-    pub target_photons: u32,
-    pub search_photons: u32,
-    /// ε is this percentile of the absolute differences.
-    pub percentile: f64,
-}
-
-/// ε from a homogeneous render pair: the reference against a render at the search's budget
-/// (stream `calibration-search`).
-pub fn calibrate(
-    engine: &dyn Engine,
-    geometry: Geometry,
-    c: &Calibration<'_>,
-    job_seed: u64,
-) -> Result<f64> {
-    let homogeneous = vec![0u16; geometry.pixels()];
-    let rendered_reference;
-    let reference = match c.reference {
-        Some(r) => r,
-        None => {
-            let seed = seeds::derive(job_seed, Stream::CalibrationTarget);
-            let counts = render_one(
-                engine,
-                geometry,
-                &[c.material],
-                homogeneous.clone(),
-                seed,
-                c.target_photons,
-            )?;
-            rendered_reference = similarity::fractions(&counts, u64::from(c.target_photons));
-            &rendered_reference
-        }
-    };
-    let seed = seeds::derive(job_seed, Stream::CalibrationSearch);
-    let counts = render_one(
-        engine,
-        geometry,
-        &[c.material],
-        homogeneous,
-        seed,
-        c.search_photons,
-    )?;
-    let search = similarity::fractions(&counts, u64::from(c.search_photons));
-    Ok(similarity::epsilon(reference, &search, c.percentile)?)
+/// Renders a plan's setup renders with `engine` and returns what the search scores against.
+pub fn prepare(plan: &Plan, engine: &dyn Engine) -> Result<Scoring> {
+    let mut counts = SetupCounts::default();
+    for r in plan.setup_renders()? {
+        tracing::info!(
+            "rendering {:?}: {} sources × {} photons",
+            r.kind,
+            r.geometry.sources(),
+            r.photons
+        );
+        let c = render_one(
+            engine,
+            r.geometry,
+            &r.table,
+            r.item.assignment.clone(),
+            r.item.seed,
+            r.photons,
+        )?;
+        counts.set(r.kind, c);
+    }
+    let scoring = plan.finish_setup(&counts)?;
+    tracing::info!(
+        "ε = {:.6} ({}th percentile)",
+        scoring.epsilon,
+        plan.percentile
+    );
+    Ok(scoring)
 }
 
 /// Runs the search to its end, calling `on_step` after every scored step and `on_photons`

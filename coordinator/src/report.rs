@@ -2,10 +2,10 @@
 
 use crate::search::Bounds;
 use crate::similarity::Metric;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// The configuration, as recorded in `report.json`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Configuration {
     pub scene: Option<String>,
     pub target: Option<String>,
@@ -28,7 +28,7 @@ pub struct Configuration {
 }
 
 /// One level in `report.json`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct LevelReport {
     pub level: u32,
     pub similarity: f64,
@@ -37,7 +37,7 @@ pub struct LevelReport {
 }
 
 /// `report.json`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Report {
     pub pixel_accuracy: Option<f64>,
     pub material_sse: Option<f64>,

@@ -154,7 +154,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
 }
 
 fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
-    use crate::commands::reconstruct::{self, ReconstructArgs};
+    use crate::commands::reconstruct;
     let scenes = args.scenes.clone().unwrap_or_else(|| {
         (b'a'..=b'l')
             .map(|c| format!("fig7{}", c as char))
@@ -179,30 +179,20 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 .map(|(n, _)| n.to_string())
                 .collect()
         });
-        let r = ReconstructArgs {
+        let params = crate::params::JobParams {
             scene: Some(scene.clone()),
-            target: None,
-            calibration: None,
-            calibration_material: None,
             dictionary,
-            random_materials: None,
-            bounds: None,
             permutations: args.permutations,
             iterations: args.iterations,
             photons_per_iteration: args.photons_per_iteration,
-            target_photons: None,
-            percentile: 99.9,
             metric: args.metric,
             grid: Some(args.grid),
             positions: Some(args.positions),
             directions: Some(args.directions),
             seed: args.seed,
-            engine: args.engine.clone(),
-            out: out.clone(),
-            quiet: true,
+            ..Default::default()
         };
-        let prepared = reconstruct::prepare(&r, engine.as_ref())?;
-        let report = reconstruct::run_prepared(prepared, engine.as_ref(), &out, true)?;
+        let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)?;
         let row = QualityRow {
             scene: scene.clone(),
             pixel_accuracy: report.pixel_accuracy,

@@ -1,10 +1,15 @@
-//! One module per `scatterfarm` subcommand; each exposes its clap arguments and a `run`.
+//! One module per `scatterfarm` subcommand (the farm's client commands share [`jobs`]); each
+//! exposes its clap arguments and a `run`.
 
 pub mod adapters;
 pub mod bench;
 pub mod connect;
+pub mod coordinator;
+pub mod demo;
 pub mod describe;
+pub mod jobs;
 pub mod reconstruct;
 pub mod render;
 pub mod scenes;
 pub mod show;
+pub mod worker;
