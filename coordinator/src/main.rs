@@ -3,7 +3,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use scatterfarm_coordinator::commands::{
-    adapters, bench, coordinator, demo, describe, jobs, reconstruct, render, scenes, show,
+    adapters, bench, coordinator, demo, describe, jobs, reconstruct, render, scenes, show, worker,
 };
 use tracing_subscriber::EnvFilter;
 
@@ -38,7 +38,7 @@ enum Command {
     /// Serve the farm: workers lease render tasks, clients submit jobs.
     Coordinator(coordinator::CoordinatorArgs),
     /// Render tasks for a coordinator on this host's engine.
-    // Worker(worker::WorkerArgs),
+    Worker(worker::WorkerArgs),
     /// Submit a job file to a coordinator; prints the job id.
     Submit(jobs::SubmitArgs),
     /// Show a job's state and progress.
@@ -74,7 +74,7 @@ fn main() -> Result<()> {
         Command::Bench(a) => bench::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Coordinator(a) => coordinator::run(a),
-        // Command::Worker(a) => worker::run(a),
+        Command::Worker(a) => worker::run(a),
         Command::Submit(a) => jobs::run_submit(a),
         Command::Status(a) => jobs::run_status(a),
         Command::Watch(a) => jobs::run_watch(a),

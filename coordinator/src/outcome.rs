@@ -252,35 +252,6 @@ pub fn write_maps_png(
     picture::save_png(&img, path)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use scatterfarm_worker::builtin;
-
-    #[test]
-    fn measures_against_the_truth_at_its_resolution() {
-        let truth = builtin::scene("fig7b").unwrap().unwrap();
-        // A perfect reconstruction at full resolution.
-        let perfect = pixel_accuracy(&truth.assignment, 16, &truth.table, &truth);
-        assert_eq!(perfect, 1.0);
-        assert_eq!(
-            material_sse(&truth.assignment, 16, &truth.table, &truth),
-            0.0
-        );
-        // All background at grid 1: accuracy is the background's share; each opaque pixel costs
-        // Δσs² + Δσa² + Δg² with opaque σa = 1.
-        let background = vec![0u16];
-        let opaque_pixels = truth.assignment.iter().filter(|&&i| i == 1).count();
-        let acc = pixel_accuracy(&background, 1, &truth.table, &truth);
-        assert!((acc - (256 - opaque_pixels) as f64 / 256.0).abs() < 1e-12);
-        let m = scatterfarm_worker::material::builtin_material("moderate").unwrap();
-        let per_pixel = m.sigma_s.powi(2) + (m.sigma_a - 1.0).powi(2) + m.g.powi(2);
-        let sse = material_sse(&background, 1, &truth.table, &truth);
-        assert!((sse - per_pixel * opaque_pixels as f64).abs() < 1e-9);
-        assert_eq!(upsample(&[1, 2, 3, 4], 2, 4)[..8], [1, 1, 2, 2, 1, 1, 2, 2]);
-    }
-}
-
 /// Everything a reconstruction's outputs are made from.
 pub struct Summary<'a> {
     pub config: &'a crate::report::Configuration,
@@ -354,4 +325,33 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
     write_maps_png(&out.join("maps.png"), s.assignment, grid, table)?;
     write_json(&out.join("report.json"), &report)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scatterfarm_worker::builtin;
+
+    #[test]
+    fn measures_against_the_truth_at_its_resolution() {
+        let truth = builtin::scene("fig7b").unwrap().unwrap();
+        // A perfect reconstruction at full resolution.
+        let perfect = pixel_accuracy(&truth.assignment, 16, &truth.table, &truth);
+        assert_eq!(perfect, 1.0);
+        assert_eq!(
+            material_sse(&truth.assignment, 16, &truth.table, &truth),
+            0.0
+        );
+        // All background at grid 1: accuracy is the background's share; each opaque pixel costs
+        // Δσs² + Δσa² + Δg² with opaque σa = 1.
+        let background = vec![0u16];
+        let opaque_pixels = truth.assignment.iter().filter(|&&i| i == 1).count();
+        let acc = pixel_accuracy(&background, 1, &truth.table, &truth);
+        assert!((acc - (256 - opaque_pixels) as f64 / 256.0).abs() < 1e-12);
+        let m = scatterfarm_worker::material::builtin_material("moderate").unwrap();
+        let per_pixel = m.sigma_s.powi(2) + (m.sigma_a - 1.0).powi(2) + m.g.powi(2);
+        let sse = material_sse(&background, 1, &truth.table, &truth);
+        assert!((sse - per_pixel * opaque_pixels as f64).abs() < 1e-9);
+        assert_eq!(upsample(&[1, 2, 3, 4], 2, 4)[..8], [1, 1, 2, 2, 1, 1, 2, 2]);
+    }
 }

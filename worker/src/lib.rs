@@ -8,7 +8,10 @@
 //! - [`transport`]: one photon's path through the pixel grid.
 //! - [`engine`]: the `Engine` trait and render types; [`cpu`]: the rayon CPU engine.
 //! - [`gpu`]: the wgpu engine (WGSL compute shader in `shaders/`), adapters and their choice.
+//! - [`agent`]: the worker process's gRPC side: register, lease, render, return the counts (the
+//!   only module that speaks the protocol).
 
+pub mod agent;
 pub mod builtin;
 pub mod cpu;
 pub mod engine;

@@ -3,6 +3,7 @@
 
 use super::connect::load_token;
 use crate::farm::core::Settings;
+use crate::farm::http;
 use crate::farm::server::{self, ServerConfig};
 use anyhow::{ensure, Context, Result};
 use clap::Args;
@@ -43,6 +44,10 @@ pub struct CoordinatorArgs {
     /// On SIGTERM, wait this long for leased tasks to come back before stopping.
     #[arg(long, default_value_t = 60.0)]
     pub drain_seconds: f64,
+    /// Serve the status page (`/`) and Prometheus metrics (`/metrics`) over HTTP on this
+    /// address, e.g. 0.0.0.0:8080 (off unless given).
+    #[arg(long)]
+    pub http: Option<SocketAddr>,
     /// Write the coordinator's URL to this file once it listens (for scripts; with --listen
     /// on port 0 it holds the port chosen).
     #[arg(long)]
@@ -96,7 +101,21 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
         .build()
         .context("cannot start the async runtime")?
         .block_on(async {
-            let (running, serving) = server::start(config, server::termination()).await?;
+            let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+            tokio::spawn(async move {
+                server::termination().await;
+                let _ = stop_tx.send(true);
+            });
+            let (running, serving) = server::start(config, server::stopped(stop_rx.clone())).await?;
+            let web = match args.http {
+                Some(addr) => {
+                    let (bound, web) =
+                        http::start(addr, running.farm.clone(), server::stopped(stop_rx)).await?;
+                    tracing::info!("status page on http://{bound}/ (metrics on /metrics)");
+                    Some(tokio::spawn(web))
+                }
+                None => None,
+            };
             let url = format!(
                 "{}://{}",
                 if tls { "https" } else { "http" },
@@ -110,6 +129,9 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                 })?;
             }
             serving.await?;
+            if let Some(web) = web {
+                web.await??;
+            }
             tracing::info!("coordinator stopped");
             Ok(())
         })

@@ -13,6 +13,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use scatterfarm_proto::channel::Target;
 use scatterfarm_worker::agent::{self, AgentConfig};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -27,6 +28,9 @@ pub struct DemoArgs {
     pub out: PathBuf,
     #[command(flatten)]
     pub engine: EngineArgs,
+    /// Serve the status page and metrics on this address (port 0: any free port).
+    #[arg(long, default_value = "127.0.0.1:0")]
+    pub http: SocketAddr,
 }
 
 /// The demo's job: the 8×8 built-in scene at a size two CPU cores finish in a few minutes.
@@ -68,6 +72,7 @@ pub fn run_embedded(
     data: &Path,
     out: &Path,
     quiet: bool,
+    http: Option<SocketAddr>,
 ) -> Result<Report> {
     let inputs = Inputs::gather(params, Path::new("."))?;
     crate::plan::Plan::resolve(params, &inputs)?;
@@ -89,9 +94,7 @@ pub fn run_embedded(
                     let _ = stop_tx.send(true);
                 });
             }
-            let until_stop = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
-                let _ = rx.wait_for(|&s| s).await;
-            };
+            let until_stop = server::stopped;
             let config = ServerConfig {
                 listen: "127.0.0.1:0".parse()?,
                 data: data.to_path_buf(),
@@ -102,6 +105,13 @@ pub fn run_embedded(
             };
             let (running, serving) = server::start(config, until_stop(stop_rx.clone())).await?;
             let serving = tokio::spawn(serving);
+            if let Some(addr) = http {
+                let (bound, web) =
+                    crate::farm::http::start(addr, running.farm.clone(), until_stop(stop_rx.clone()))
+                        .await?;
+                eprintln!("status page: http://{bound}/");
+                tokio::spawn(web);
+            }
             let target = Target {
                 url: format!("http://{}", running.address),
                 ca_pem: None,
@@ -167,7 +177,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         "scatterfarm demo: reconstructing the built-in 8×8 scene `demo8` with a coordinator and a worker in this process (state in {})",
         args.data.display()
     );
-    let report = run_embedded(&params, &engine, &args.data, &args.out, false)?;
+    let report = run_embedded(&params, &engine, &args.data, &args.out, false, Some(args.http))?;
     eprintln!(
         "done: similarity {:.4}, pixel accuracy {:.1} %, {} renders on {}.\nThe result is in {}: reconstruction.png (truth | reconstruction | wrong pixels), maps.png, materials.npy, report.json",
         report.similarity,

@@ -113,6 +113,7 @@ pub fn run(args: ReconstructArgs) -> Result<()> {
             data,
             &args.out,
             args.quiet,
+            None,
         )?,
     };
     let accuracy = report

@@ -11,6 +11,7 @@ use scatterfarm_worker::agent::{self, AgentConfig};
 use scatterfarm_worker::Engine;
 use std::sync::Arc;
 
+/// Render tasks leased from a coordinator until SIGTERM or Ctrl-C.
 #[derive(Debug, Clone, Args)]
 pub struct WorkerArgs {
     #[command(flatten)]
@@ -84,7 +85,9 @@ async fn first_signal() {
                 }
                 return;
             }
-            Err(e) => tracing::warn!("cannot listen for SIGTERM ({e}); only Ctrl-C stops the worker"),
+            Err(e) => {
+                tracing::warn!("cannot listen for SIGTERM ({e}); only Ctrl-C stops the worker")
+            }
         }
     }
     if let Err(e) = tokio::signal::ctrl_c().await {

@@ -107,6 +107,10 @@ pub struct Counters {
     pub leases_expired: u64,
     pub results_refused: u64,
     pub results_accepted: u64,
+    /// Renders whose counts were complete (setup and search renders).
+    pub renders_completed: u64,
+    /// Photons (all sources) of accepted results.
+    pub photons: u64,
 }
 
 /// The coordinator's state.
@@ -529,14 +533,17 @@ impl Core {
         };
         let group = &mut job.groups[pos];
         group.accumulate(&lease.piece, &counts, scatter_events);
-        job.session_photons +=
+        let photons =
             u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
+        job.session_photons += photons;
+        self.counters.photons += photons;
         let leased_elsewhere = self
             .leases
             .values()
             .any(|l| l.group == lease.group);
         if job.groups[pos].is_complete() && !leased_elsewhere {
             let group: RenderGroup = job.groups.remove(pos);
+            self.counters.renders_completed += group.items.len() as u64;
             if let Err(e) = job.group_complete(group, &mut new_group, store.as_ref()) {
                 job.fail(format!("{e:#}"), store.as_ref())?;
             }

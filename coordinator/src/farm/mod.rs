@@ -8,8 +8,10 @@
 //! - [`core`]: jobs, workers and leases: scheduling, checks, expiry.
 //! - [`service`]: the `WorkerService` and `ClientService` gRPC implementations.
 //! - [`server`]: serving them with TLS, token, health, reflection and a graceful drain.
+//! - [`http`]: the web face: Prometheus metrics and a status page.
 
 pub mod core;
+pub mod http;
 pub mod identity;
 pub mod job;
 pub mod server;

@@ -149,6 +149,11 @@ pub async fn start(
     Ok((Running { address, farm }, serving))
 }
 
+/// Resolves once `rx` holds `true` (or its sender is gone).
+pub async fn stopped(mut rx: tokio::sync::watch::Receiver<bool>) {
+    let _ = rx.wait_for(|&s| s).await;
+}
+
 /// Resolves on SIGTERM or Ctrl-C.
 pub async fn termination() {
     #[cfg(unix)]
