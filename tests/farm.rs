@@ -146,8 +146,7 @@ impl Proc {
 
     /// Started with stdout discarded and stderr (the log) in `log`.
     fn logged(mut cmd: Command, log: &Path) -> Proc {
-        cmd.stdout(Stdio::null())
-            .stderr(File::create(log).unwrap());
+        cmd.stdout(Stdio::null()).stderr(File::create(log).unwrap());
         let mut proc = Proc::spawn(cmd);
         proc.log = Some(log.to_path_buf());
         proc
@@ -361,7 +360,11 @@ impl Farm {
     /// `kill -9` of the coordinator.
     fn kill_coordinator(&mut self) {
         let mut proc = self.coordinator.take().expect("no coordinator runs");
-        assert!(proc.running(), "the coordinator had died:\n{}", proc.log_text());
+        assert!(
+            proc.running(),
+            "the coordinator had died:\n{}",
+            proc.log_text()
+        );
         proc.kill();
     }
 
@@ -369,10 +372,18 @@ impl Farm {
     /// `extra`; returns its index in `workers`.
     fn start_worker(&mut self, name: &str, extra: &[&str]) -> usize {
         let mut cmd = scatterfarm();
-        cmd.args(["worker", "--coordinator", &self.url, "--engine", "cpu", "--name", name])
-            .args(&self.connect)
-            .args(extra)
-            .current_dir(self.root.path());
+        cmd.args([
+            "worker",
+            "--coordinator",
+            &self.url,
+            "--engine",
+            "cpu",
+            "--name",
+            name,
+        ])
+        .args(&self.connect)
+        .args(extra)
+        .current_dir(self.root.path());
         self.workers
             .push(Proc::logged(cmd, &self.path(&format!("worker-{name}.log"))));
         self.workers.len() - 1
@@ -570,7 +581,11 @@ impl Farm {
         for name in names {
             let body = std::fs::read_to_string(self.path(&name)).unwrap_or_default();
             let lines: Vec<&str> = body.lines().collect();
-            let keep = if name.starts_with("coordinator") { 60 } else { 15 };
+            let keep = if name.starts_with("coordinator") {
+                60
+            } else {
+                15
+            };
             text.push_str(&format!("---- {name} (last {keep} lines)\n"));
             for line in &lines[lines.len().saturating_sub(keep)..] {
                 text.push_str(line);
@@ -874,7 +889,11 @@ fn a_coordinator_killed_three_times_resumes_to_the_same_result() {
             );
             break s;
         }
-        assert!(Instant::now() < deadline, "no lease: {s:?}\n{}", farm.logs());
+        assert!(
+            Instant::now() < deadline,
+            "no lease: {s:?}\n{}",
+            farm.logs()
+        );
         std::thread::sleep(Duration::from_millis(1));
     };
     drop(rpc);
@@ -890,7 +909,7 @@ fn a_coordinator_killed_three_times_resumes_to_the_same_result() {
     // 2 and 3: past 20 % and 70 % of the renders.
     for share in [0.2, 0.7] {
         let before = farm.wait_for(&id, &format!("{share} of the renders"), |s| {
-            fraction(s) > share
+            s["state"] == "searching" && fraction(s) > share
         });
         farm.kill_coordinator();
         farm.start_coordinator();
@@ -952,12 +971,12 @@ fn a_task_of_a_worker_killed_mid_task_is_rendered_by_another() {
         farm.workers[victim].kill();
         // Let a result already on its way land.
         std::thread::sleep(Duration::from_millis(100));
-        let w = rpc
+        // (A worker the coordinator already forgot, say on a loaded machine, does not count.)
+        let held = rpc
             .workers()
             .into_iter()
-            .find(|w| w.name == name)
-            .expect("a worker killed 0.1 s ago is still registered");
-        if w.tasks_leased > 0 {
+            .find(|w| w.name == name && w.tasks_leased > 0);
+        if let Some(w) = held {
             lost = Some(w.worker_id);
             break;
         }
@@ -977,16 +996,23 @@ fn a_task_of_a_worker_killed_mid_task_is_rendered_by_another() {
 
     farm.wait_finished(&id);
     farm.assert_reference_result(&id, false);
-    let survivor = farm.worker_named("survivor").expect("the survivor is registered");
-    assert!(survivor["tasks_completed"].as_u64().unwrap() > 0);
+    // Only the survivor was left to render the lost task; it is still running.
+    let survivor = &mut farm.workers[0];
+    assert!(
+        survivor.running(),
+        "the survivor died:\n{}",
+        survivor.log_text()
+    );
 }
 
 #[test]
 fn late_results_of_lost_leases_are_refused() {
-    let mut farm = Farm::start(&["--task-seconds", "0.05", "--heartbeat-ms", "300"]);
+    // Fake workers answer between lease calls of a second: a heartbeat of a second (3 s of
+    // silence before a worker is forgotten) keeps them registered on a loaded machine.
+    let mut farm = Farm::start(&["--task-seconds", "0.05", "--heartbeat-ms", "1000"]);
     let rpc = Rpc::connect(&farm.address);
     let first = rpc.register(pb::PROTOCOL, "late-1").unwrap();
-    assert_eq!(first.heartbeat_interval_ms, 300);
+    assert_eq!(first.heartbeat_interval_ms, 1000);
     let id = farm.submit();
     let task = rpc.lease(&first.worker_id);
     assert_eq!((task.job_id.as_str(), task.attempt), (id.as_str(), 1));
@@ -996,6 +1022,7 @@ fn late_results_of_lost_leases_are_refused() {
     let second = rpc.register_fake("late-2");
     let deadline = Instant::now() + Duration::from_secs(60);
     let again = loop {
+        assert!(rpc.heartbeat(&second), "the second fake was forgotten");
         let response = rpc.try_lease(&second);
         if let Some(t) = response.task {
             if t.task_id == task.task_id {
@@ -1034,9 +1061,14 @@ fn late_results_of_lost_leases_are_refused() {
     // task is a setup render) once the real worker has rendered it.
     farm.start_worker("real", &[]);
     farm.wait_for(&id, "the end of preparing", |s| s["state"] != "preparing");
-    let real = farm.worker_named("real").expect("the real worker is registered");
+    let real = farm
+        .worker_named("real")
+        .expect("the real worker is registered");
     assert!(real["tasks_completed"].as_u64().unwrap() > 0, "{real:#}");
-    assert!(farm.worker_named("late-2").is_none(), "late-2 was not forgotten");
+    assert!(
+        farm.worker_named("late-2").is_none(),
+        "late-2 was not forgotten"
+    );
 
     // The second fake's result for attempt 2 comes too late as well.
     assert!(!rpc.heartbeat(&second));
@@ -1067,7 +1099,10 @@ fn tokens_are_required_and_checked() {
         assert!(err.contains("token"), "{args:?} without a token: {err}");
         let bad = farm.client_at(&farm.url, &wrong, &[], args, limit);
         let err = bad.fails();
-        assert!(err.contains("wrong token"), "{args:?} with a wrong token: {err}");
+        assert!(
+            err.contains("wrong token"),
+            "{args:?} with a wrong token: {err}"
+        );
     }
     // So are workers: they exit with an error.
     let no_token = farm.start_worker("no-token", &[]);
@@ -1095,7 +1130,11 @@ fn tokens_are_required_and_checked() {
     let id = farm.submit();
     farm.wait_finished(&id);
     farm.assert_reference_result(&id, false);
-    let names: Vec<Value> = farm.worker_list().iter().map(|w| w["name"].clone()).collect();
+    let names: Vec<Value> = farm
+        .worker_list()
+        .iter()
+        .map(|w| w["name"].clone())
+        .collect();
     assert_eq!(names, vec![Value::from("right-token")]);
 }
 
@@ -1121,7 +1160,9 @@ fn certificates() -> (String, String, String) {
     let key = KeyPair::generate().unwrap();
     let mut server =
         CertificateParams::new(vec!["localhost".to_string(), "127.0.0.1".to_string()]).unwrap();
-    server.distinguished_name.push(DnType::CommonName, "localhost");
+    server
+        .distinguished_name
+        .push(DnType::CommonName, "localhost");
     server.extended_key_usages = vec![ExtendedKeyUsagePurpose::ServerAuth];
     server.use_authority_key_identifier_extension = true;
     let cert_pem = server.signed_by(&key, &issuer).unwrap().pem();
@@ -1160,13 +1201,7 @@ fn tls_carries_a_job_end_to_end_and_plaintext_is_refused() {
     // With the CA, clients and a worker reach it by name and by address.
     farm.connect = vec!["--tls-ca".into(), "ca.pem".into()];
     assert_eq!(farm.json(&jobs), serde_json::json!([]));
-    let by_ip = farm.client_at(
-        &farm.address,
-        &["--tls-ca", "ca.pem"],
-        &[],
-        &jobs,
-        limit,
-    );
+    let by_ip = farm.client_at(&farm.address, &["--tls-ca", "ca.pem"], &[], &jobs, limit);
     assert_eq!(by_ip.ok().trim(), "[]");
     farm.start_worker("tls", &[]);
     let id = farm.submit();
@@ -1279,7 +1314,10 @@ fn malformed_job_files_are_refused_and_nothing_is_stored() {
     // The coordinator checks what reaches it without the command's checks too.
     let rpc = Rpc::connect(&farm.address);
     let message = assert_code(
-        rpc.submit(&format!("{good}permutation = 3\n"), &[("three.toml", SCENE)]),
+        rpc.submit(
+            &format!("{good}permutation = 3\n"),
+            &[("three.toml", SCENE)],
+        ),
         Code::InvalidArgument,
     );
     assert!(message.contains("permutation"), "{message}");

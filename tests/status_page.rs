@@ -123,7 +123,11 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         .arg(&job)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
 
     // Wait until something has been scored, so there is a map to show.
@@ -144,9 +148,15 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
     let page = format!("http://127.0.0.1:{http}/");
     let profile = dir.path().join("chromium-profile");
     let dom = browse(&browser, &profile, &["--dump-dom"], &page);
-    assert!(dom.contains(&format!("data-job=\"{id}\"")), "job row missing:\n{dom}");
+    assert!(
+        dom.contains(&format!("data-job=\"{id}\"")),
+        "job row missing:\n{dom}"
+    );
     assert!(dom.contains("page-test-job"), "job name missing:\n{dom}");
-    assert!(dom.contains("page-test-worker"), "worker row missing:\n{dom}");
+    assert!(
+        dom.contains("page-test-worker"),
+        "worker row missing:\n{dom}"
+    );
     assert!(dom.contains("cpu/cpu/"), "worker engine missing:\n{dom}");
     let img = dom
         .split("<img")
@@ -154,7 +164,10 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         .map(|rest| rest.split('>').next().unwrap_or(""))
         .unwrap_or_else(|| panic!("no map image on the page:\n{dom}"));
     assert!(img.contains(&format!("/jobs/{id}/map.png")), "{img}");
-    assert!(img.contains("data-loaded=\"1\""), "the map image did not load: {img}");
+    assert!(
+        img.contains("data-loaded=\"1\""),
+        "the map image did not load: {img}"
+    );
 
     let artifacts = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/test-artifacts");
     std::fs::create_dir_all(&artifacts).unwrap();

@@ -18,6 +18,28 @@ pub const DEFAULT_PERCENTILE: f64 = 99.9;
 /// The default job seed.
 pub const DEFAULT_SEED: u64 = 1;
 
+/// Which search runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SearchMode {
+    /// The paper's algorithm exactly: every render request its own seed.
+    #[default]
+    Paper,
+    /// Common random numbers per level and a render cache: the same search, with every render
+    /// of a level on one seed, so repeated assignments are rendered once.
+    Fast,
+}
+
+impl SearchMode {
+    /// How the search seeds its renders.
+    pub fn seeding(self) -> crate::search::Seeding {
+        match self {
+            SearchMode::Paper => crate::search::Seeding::PerRequest,
+            SearchMode::Fast => crate::search::Seeding::PerLevel,
+        }
+    }
+}
+
 /// What to reconstruct and how; see `scatterfarm reconstruct --help` for each key.
 #[derive(Debug, Clone, PartialEq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -74,6 +96,10 @@ pub struct JobParams {
     /// The job seed: every random stream derives from it.
     #[arg(long, default_value_t = DEFAULT_SEED)]
     pub seed: u64,
+    /// The search: the paper's exactly, or the faster one (common random numbers per level,
+    /// render cache).
+    #[arg(long, value_enum, default_value_t = SearchMode::Paper)]
+    pub search: SearchMode,
     /// A label for job listings (job files only).
     #[arg(skip)]
     pub name: Option<String>,
@@ -105,6 +131,7 @@ impl Default for JobParams {
             positions: None,
             directions: None,
             seed: DEFAULT_SEED,
+            search: SearchMode::Paper,
             name: None,
             engine_fingerprint: None,
             any_engine: false,
@@ -135,9 +162,22 @@ impl JobParams {
         Ok(params)
     }
 
-    /// The job file text of these parameters.
+    /// The job file text of these parameters: only the keys that differ from the defaults, so
+    /// a coordinator of an older release (which refuses keys it does not know) still reads it
+    /// unless the job uses something new.
     pub fn to_toml(&self) -> Result<String> {
-        toml::to_string(self).context("cannot write the job parameters as TOML")
+        let full =
+            toml::Value::try_from(self).context("cannot write the job parameters as TOML")?;
+        let defaults = toml::Value::try_from(JobParams::default())
+            .context("cannot write the default job parameters as TOML")?;
+        let mut table = match full {
+            toml::Value::Table(t) => t,
+            _ => anyhow::bail!("job parameters are not a TOML table"),
+        };
+        if let toml::Value::Table(d) = defaults {
+            table.retain(|k, v| d.get(k) != Some(v));
+        }
+        toml::to_string(&table).context("cannot write the job parameters as TOML")
     }
 
     /// The input files these parameters name: a scene file (when `scene` is not a built-in
@@ -172,7 +212,12 @@ mod tests {
         assert_eq!(p.permutations, 3);
         assert_eq!(p.iterations, DEFAULT_ITERATIONS);
         assert_eq!(p.metric, Metric::L2);
-        let back = JobParams::from_toml(&p.to_toml().unwrap(), Path::new("k.toml")).unwrap();
+        let text = p.to_toml().unwrap();
+        assert!(
+            !text.contains("iterations ="),
+            "defaults are left out: {text}"
+        );
+        let back = JobParams::from_toml(&text, Path::new("k.toml")).unwrap();
         assert_eq!(back, p);
     }
 
@@ -181,13 +226,15 @@ mod tests {
         let err = JobParams::from_toml("scene = \"a\"\npermutation = 3\n", Path::new("j.toml"))
             .unwrap_err();
         let text = format!("{err:#}");
-        assert!(text.contains("j.toml") && text.contains("permutation"), "{text}");
+        assert!(
+            text.contains("j.toml") && text.contains("permutation"),
+            "{text}"
+        );
         assert!(text.contains("line 2"), "{text}");
         let err = JobParams::from_toml("permutations = 3\n", Path::new("j.toml")).unwrap_err();
         assert!(format!("{err:#}").contains("exactly one of"));
-        let err =
-            JobParams::from_toml("scene = \"a\"\niterations = \"x\"\n", Path::new("j.toml"))
-                .unwrap_err();
+        let err = JobParams::from_toml("scene = \"a\"\niterations = \"x\"\n", Path::new("j.toml"))
+            .unwrap_err();
         assert!(format!("{err:#}").contains("iterations"));
     }
 }

@@ -328,6 +328,7 @@ impl Plan {
                 permutations: params.permutations,
                 seed: params.seed,
                 candidates: candidates.clone(),
+                seeding: params.search.seeding(),
             },
             table,
         )?;
@@ -375,8 +376,7 @@ impl Plan {
     /// pair (one of them, for a captured target).
     pub fn setup_renders(&self) -> Result<Vec<SetupRender>> {
         let mut renders = Vec::new();
-        if let (TargetSource::Synthesized { photons }, Some(scene)) = (&self.target, &self.truth)
-        {
+        if let (TargetSource::Synthesized { photons }, Some(scene)) = (&self.target, &self.truth) {
             renders.push(SetupRender {
                 kind: SetupKind::Target,
                 geometry: scene.geometry,
@@ -422,7 +422,10 @@ impl Plan {
         let target = match &self.target {
             TargetSource::Captured(t) => t.clone(),
             TargetSource::Synthesized { photons } => {
-                let c = counts.target.as_ref().context("the target render is missing")?;
+                let c = counts
+                    .target
+                    .as_ref()
+                    .context("the target render is missing")?;
                 Target {
                     values: similarity::fractions(c, u64::from(*photons)),
                     photons_per_source: u64::from(*photons),

@@ -1,16 +1,19 @@
 //! Running a reconstruction in one process: rendering a [`Plan`]'s target and calibration, and
 //! driving the [`Search`] state machine against an [`Engine`].
 //!
-//! Every render the search asks for is rendered as one batch (all candidates of a step at once)
-//! over the search's photon budget, in chunks of one iteration's photons, then scored.
+//! The renders of a search step are rendered as one batch (all candidates at once) over the
+//! search's photon budget, in chunks of one iteration's photons, then scored. A request whose
+//! render identity was already scored (the same assignment and seed: common random numbers make
+//! these frequent) takes the cached score instead of a new render.
 
 use crate::engines::render_in_chunks;
-use crate::search::Search;
 use crate::plan::{Plan, SetupCounts};
+use crate::search::Search;
 use crate::similarity::{self, Metric, Target};
 use anyhow::{Context, Result};
 use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 
 /// The photon budget of a search (`model.md`, "Budget").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -43,8 +46,12 @@ pub struct Scoring {
 /// What the search consumed.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Consumption {
+    /// Render requests the search made (each answered by a render or by the cache).
+    #[serde(default)]
+    pub requests: u64,
+    /// Distinct renders the search needed: requests whose identity had not been rendered.
     pub renders: u64,
-    /// Photons launched by search renders, over all sources.
+    /// Photons launched by those renders, over all sources.
     pub photons: u64,
     pub scatter_events: u64,
 }
@@ -109,42 +116,68 @@ pub fn drive(
     let photons = scoring.budget.photons_per_source()?;
     let sources = scoring.geometry.sources() as u64;
     let mut used = Consumption::default();
+    // Scores by (assignment, seed): within one search, engine, geometry, photons and the
+    // material table's entries are fixed, so this is the render's identity. Seeds never repeat
+    // across levels, so the cache is cleared at each new level.
+    let mut cache: HashMap<(Vec<u16>, u64), f64> = HashMap::new();
+    let mut cache_level = search.progress().level;
     while !search.is_finished() {
-        let items: Vec<RenderItem> = search
-            .pending()
-            .iter()
-            .map(|r| RenderItem {
-                assignment: r.assignment.clone(),
-                seed: r.seed,
-            })
-            .collect();
-        let table = search.materials();
-        let n_items = items.len() as u64;
-        let rendered = render_in_chunks(
-            engine,
-            scoring.geometry,
-            &table,
-            &items,
-            photons,
-            scoring.budget.photons_per_iteration.max(1),
-            &mut |n| on_photons(u64::from(n) * n_items * sources),
-        )?;
-        let scores = rendered
-            .counts
-            .iter()
-            .map(|c| {
-                similarity::score(
+        let level = search.progress().level;
+        if level != cache_level {
+            cache.clear();
+            cache_level = level;
+        }
+        let mut missing: Vec<RenderItem> = Vec::new();
+        for r in search.pending() {
+            let key = (r.assignment.clone(), r.seed);
+            if !cache.contains_key(&key)
+                && !missing
+                    .iter()
+                    .any(|m| m.seed == r.seed && m.assignment == r.assignment)
+            {
+                missing.push(RenderItem {
+                    assignment: r.assignment.clone(),
+                    seed: r.seed,
+                });
+            }
+        }
+        if !missing.is_empty() {
+            let table = search.materials();
+            let n_items = missing.len() as u64;
+            let rendered = render_in_chunks(
+                engine,
+                scoring.geometry,
+                &table,
+                &missing,
+                photons,
+                scoring.budget.photons_per_iteration.max(1),
+                &mut |n| on_photons(u64::from(n) * n_items * sources),
+            )?;
+            for (item, c) in missing.into_iter().zip(&rendered.counts) {
+                let s = similarity::score(
                     scoring.metric,
                     &scoring.target,
                     c,
                     u64::from(photons),
                     scoring.epsilon,
-                )
+                )?;
+                cache.insert((item.assignment, item.seed), s);
+            }
+            used.renders += n_items;
+            used.photons += n_items * sources * u64::from(photons);
+            used.scatter_events += rendered.scatter_events;
+        }
+        let scores = search
+            .pending()
+            .iter()
+            .map(|r| {
+                cache
+                    .get(&(r.assignment.clone(), r.seed))
+                    .copied()
+                    .context("a request's score is missing")
             })
-            .collect::<Result<Vec<f64>, _>>()?;
-        used.renders += n_items;
-        used.photons += n_items * sources * u64::from(photons);
-        used.scatter_events += rendered.scatter_events;
+            .collect::<Result<Vec<f64>>>()?;
+        used.requests += scores.len() as u64;
         search.submit(&scores)?;
         on_step(search, &used);
     }

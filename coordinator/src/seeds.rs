@@ -19,6 +19,8 @@ pub enum Stream {
     Search,
     /// Render request `n` of the search, in its deterministic order.
     Render(u64),
+    /// Every render of search level `ℓ` under common random numbers (`--search fast`).
+    LevelRender(u32),
 }
 
 impl Stream {
@@ -29,6 +31,7 @@ impl Stream {
             Stream::CalibrationSearch => ("calibration-search", 0),
             Stream::Search => ("search", 0),
             Stream::Render(n) => ("render", *n),
+            Stream::LevelRender(l) => ("render-level", u64::from(*l)),
         }
     }
 }
@@ -61,6 +64,8 @@ mod tests {
             derive(1, Stream::Search),
             derive(1, Stream::Render(0)),
             derive(1, Stream::Render(1)),
+            derive(1, Stream::LevelRender(0)),
+            derive(1, Stream::LevelRender(1)),
             derive(2, Stream::Target),
         ];
         for (i, a) in all.iter().enumerate() {

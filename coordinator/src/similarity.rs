@@ -21,6 +21,10 @@ pub enum Metric {
     /// Minus the sum of squared differences, each divided by the target's intensity
     /// (plus one photon's worth, so dark observations stay finite).
     L2InverseIntensity,
+    /// Minus χ²: squared differences over the binomial variance of the difference, with the
+    /// fraction pooled from target and render (so neither side's noise sets the weights, and
+    /// darker candidates are not favoured).
+    L2Pooled,
 }
 
 /// Why a score could not be computed.
@@ -84,6 +88,23 @@ pub fn score(
             let floor = 1.0 / target.photons_per_source.max(1) as f64;
             -pairs
                 .map(|(r, s)| (f64::from(r) - f64::from(s)).powi(2) / (f64::from(r) + floor))
+                .sum::<f64>()
+        }
+        Metric::L2Pooled => {
+            // Var(R − S) = p(1 − p)(1/n_R + 1/n_S) for binomial fractions with a common p,
+            // estimated from both; p is kept at least one photon's worth of the pooled sample.
+            let (nr, ns) = (
+                target.photons_per_source.max(1) as f64,
+                photons_per_source as f64,
+            );
+            let scale = 1.0 / nr + 1.0 / ns;
+            let floor = 1.0 / (nr + ns);
+            -pairs
+                .map(|(r, s)| {
+                    let (r, s) = (f64::from(r), f64::from(s));
+                    let p = ((r * nr + s * ns) / (nr + ns)).clamp(floor, 1.0 - floor);
+                    (r - s).powi(2) / (p * (1.0 - p) * scale)
+                })
                 .sum::<f64>()
         }
     })

@@ -22,7 +22,9 @@ impl AttachToken {
             .map(|t| {
                 format!("Bearer {t}")
                     .parse::<MetadataValue<_>>()
-                    .map_err(|_| Status::invalid_argument("the token has characters a header cannot carry"))
+                    .map_err(|_| {
+                        Status::invalid_argument("the token has characters a header cannot carry")
+                    })
             })
             .transpose()?;
         Ok(AttachToken { value })
@@ -97,7 +99,9 @@ mod tests {
         let req = attach.call(Request::new(())).unwrap();
         assert!(require.call(req).is_ok());
         let mut wrong = AttachToken::new(Some("nope")).unwrap();
-        let err = require.call(wrong.call(Request::new(())).unwrap()).unwrap_err();
+        let err = require
+            .call(wrong.call(Request::new(())).unwrap())
+            .unwrap_err();
         assert_eq!(err.code(), tonic::Code::Unauthenticated);
         let err = require.call(Request::new(())).unwrap_err();
         assert!(err.message().contains("requires a token"));

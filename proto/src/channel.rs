@@ -62,10 +62,12 @@ impl Target {
             if let Some(ca) = &self.ca_pem {
                 tls = tls.ca_certificate(Certificate::from_pem(ca));
             }
-            endpoint = endpoint.tls_config(tls).map_err(|source| ConnectError::Tls {
-                url: self.url.clone(),
-                source,
-            })?;
+            endpoint = endpoint
+                .tls_config(tls)
+                .map_err(|source| ConnectError::Tls {
+                    url: self.url.clone(),
+                    source,
+                })?;
         }
         Ok(endpoint)
     }

@@ -13,6 +13,9 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
 
+#[path = "bench_farm.rs"]
+mod farm;
+
 #[derive(Debug, Args)]
 pub struct BenchArgs {
     #[command(subcommand)]
@@ -23,8 +26,12 @@ pub struct BenchArgs {
 pub enum BenchWhat {
     /// Photons and scattering events per second (and per CPU-second) on the standard medium.
     Engine(EngineBenchArgs),
-    /// The quality table: reconstruct the twelve Fig. 7 scenes and report accuracy and cost.
+    /// The quality table: reconstruct the twelve Fig. 7 scenes (and any others named) and report
+    /// accuracy and cost, with the paper's search or the fast one.
     Reconstruct(ReconstructBenchArgs),
+    /// What one coordinator can feed: full-size renders per second ingested and scored, and
+    /// its CPU per render, with replay workers (recorded counts) on loopback.
+    Farm(farm::FarmBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -54,6 +61,13 @@ pub struct ReconstructBenchArgs {
     pub metric: crate::similarity::Metric,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Photons per source of the synthesized targets (default: the search's); give the same
+    /// value when comparing budgets, so every search sees the same targets.
+    #[arg(long)]
+    pub target_photons: Option<u32>,
+    /// The search: the paper's, or the fast one.
+    #[arg(long, value_enum, default_value_t = crate::params::SearchMode::Paper)]
+    pub search: crate::params::SearchMode,
     #[command(flatten)]
     pub engine: EngineArgs,
 }
@@ -150,6 +164,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Engine(a) => run_engine(a),
         BenchWhat::Reconstruct(a) => run_reconstruct(a),
+        BenchWhat::Farm(a) => farm::run(a),
     }
 }
 
@@ -190,6 +205,8 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
             positions: Some(args.positions),
             directions: Some(args.directions),
             seed: args.seed,
+            search: args.search,
+            target_photons: args.target_photons,
             ..Default::default()
         };
         let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)?;
@@ -221,6 +238,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         "iterations": args.iterations,
         "photons_per_iteration": args.photons_per_iteration,
         "metric": args.metric,
+        "search": args.search,
         "seed": args.seed,
         "scenes": rows,
         "total_photons": rows.iter().map(|r| r.photons).sum::<u64>(),

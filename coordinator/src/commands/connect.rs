@@ -45,7 +45,9 @@ impl ConnectArgs {
         let ca_pem = self
             .tls_ca
             .as_ref()
-            .map(|p| std::fs::read(p).with_context(|| format!("cannot read --tls-ca {}", p.display())))
+            .map(|p| {
+                std::fs::read(p).with_context(|| format!("cannot read --tls-ca {}", p.display()))
+            })
             .transpose()?;
         anyhow::ensure!(
             ca_pem.is_none() || self.coordinator.starts_with("https://"),

@@ -61,7 +61,10 @@ impl CoordinatorArgs {
             self.task_seconds > 0.0 && self.task_seconds.is_finite(),
             "--task-seconds must be positive"
         );
-        ensure!(self.heartbeat_ms >= 10, "--heartbeat-ms must be at least 10");
+        ensure!(
+            self.heartbeat_ms >= 10,
+            "--heartbeat-ms must be at least 10"
+        );
         ensure!(
             self.lease_seconds > 0.0 && self.lease_seconds.is_finite(),
             "--lease-seconds must be positive"
@@ -72,8 +75,10 @@ impl CoordinatorArgs {
         );
         let tls = match (&self.tls_cert, &self.tls_key) {
             (Some(c), Some(k)) => Some((
-                std::fs::read(c).with_context(|| format!("cannot read --tls-cert {}", c.display()))?,
-                std::fs::read(k).with_context(|| format!("cannot read --tls-key {}", k.display()))?,
+                std::fs::read(c)
+                    .with_context(|| format!("cannot read --tls-cert {}", c.display()))?,
+                std::fs::read(k)
+                    .with_context(|| format!("cannot read --tls-key {}", k.display()))?,
             )),
             _ => None,
         };
@@ -106,7 +111,8 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                 server::termination().await;
                 let _ = stop_tx.send(true);
             });
-            let (running, serving) = server::start(config, server::stopped(stop_rx.clone())).await?;
+            let (running, serving) =
+                server::start(config, server::stopped(stop_rx.clone())).await?;
             let web = match args.http {
                 Some(addr) => {
                     let (bound, web) =

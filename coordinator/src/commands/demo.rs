@@ -45,7 +45,11 @@ pub fn demo_params() -> JobParams {
 }
 
 /// Finds a stored job with the same parameters and input files.
-fn existing_job(farm: &crate::farm::service::Farm, params: &JobParams, inputs: &Inputs) -> Option<String> {
+fn existing_job(
+    farm: &crate::farm::service::Farm,
+    params: &JobParams,
+    inputs: &Inputs,
+) -> Option<String> {
     let core = farm.core();
     core.jobs
         .values()
@@ -177,7 +181,14 @@ pub fn run(args: DemoArgs) -> Result<()> {
         "scatterfarm demo: reconstructing the built-in 8×8 scene `demo8` with a coordinator and a worker in this process (state in {})",
         args.data.display()
     );
-    let report = run_embedded(&params, &engine, &args.data, &args.out, false, Some(args.http))?;
+    let report = run_embedded(
+        &params,
+        &engine,
+        &args.data,
+        &args.out,
+        false,
+        Some(args.http),
+    )?;
     eprintln!(
         "done: similarity {:.4}, pixel accuracy {:.1} %, {} renders on {}.\nThe result is in {}: reconstruction.png (truth | reconstruction | wrong pixels), maps.png, materials.npy, report.json",
         report.similarity,

@@ -32,7 +32,12 @@ fn block_on<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
 
 /// A gRPC failure as a readable error.
 pub fn status_error(what: &str, s: tonic::Status) -> anyhow::Error {
-    anyhow::anyhow!("{what}: {} ({:?})", s.message(), s.code())
+    let hint = if s.code() == tonic::Code::Unknown && s.message().contains("transport error") {
+        " (if the coordinator serves TLS, use an https:// URL, with --tls-ca for a private CA)"
+    } else {
+        ""
+    };
+    anyhow::anyhow!("{what}: {} ({:?}){hint}", s.message(), s.code())
 }
 
 #[derive(Debug, Clone, Args)]
@@ -50,8 +55,8 @@ pub fn read_job(path: &Path) -> Result<(JobParams, Inputs)> {
         .with_context(|| format!("cannot read the job file {}", path.display()))?;
     let params = JobParams::from_toml(&text, path)?;
     let base = path.parent().unwrap_or(Path::new("."));
-    let inputs = Inputs::gather(&params, base)
-        .with_context(|| format!("job file {}", path.display()))?;
+    let inputs =
+        Inputs::gather(&params, base).with_context(|| format!("job file {}", path.display()))?;
     Plan::resolve(&params, &inputs).with_context(|| format!("job file {}", path.display()))?;
     Ok((params, inputs))
 }
@@ -287,7 +292,11 @@ pub struct ResultArgs {
 
 /// Fetches a job's outputs into `out` (each file written atomically); returns whether they are
 /// partial (the job has not finished) and the job's status.
-pub async fn fetch_result(client: &mut Client, id: &str, out: &Path) -> Result<(bool, pb::JobStatus)> {
+pub async fn fetch_result(
+    client: &mut Client,
+    id: &str,
+    out: &Path,
+) -> Result<(bool, pb::JobStatus)> {
     let r = client
         .result(pb::JobRef {
             job_id: id.to_string(),

@@ -289,8 +289,7 @@ impl Core {
                 name,
                 fingerprint,
                 fingerprint_key: key,
-                photons_per_second: if photons_per_second.is_finite() && photons_per_second > 0.0
-                {
+                photons_per_second: if photons_per_second.is_finite() && photons_per_second > 0.0 {
                     photons_per_second
                 } else {
                     1e5
@@ -345,6 +344,7 @@ impl Core {
                 .get(&(id.clone(), worker.id.clone()))
                 .is_some_and(|&s| s >= STRIKES)
             {
+                reason = format!("blocked for job {id} after {STRIKES} bad results");
                 continue;
             }
             let (next_group, next_task) = (&mut self.next_group, &mut self.next_task);
@@ -484,7 +484,9 @@ impl Core {
         let check = {
             let job = self.job(job_id)?;
             match job.groups.iter().find(|g| g.id == lease.group) {
-                None => Err(Refusal::Stale(format!("task {task}'s renders are no longer needed"))),
+                None => Err(Refusal::Stale(format!(
+                    "task {task}'s renders are no longer needed"
+                ))),
                 Some(group) => match &counts {
                     Err(e) => Err(Refusal::Invalid(e.clone())),
                     Ok(c) => group.check(&lease.piece, c).map_err(Refusal::Invalid),
@@ -529,7 +531,9 @@ impl Core {
             .get_mut(job_id)
             .ok_or_else(|| Refusal::NotFound(format!("no job {job_id}")))?;
         let Some(pos) = job.groups.iter().position(|g| g.id == lease.group) else {
-            return Err(Refusal::Stale(format!("task {task}'s renders are no longer needed")));
+            return Err(Refusal::Stale(format!(
+                "task {task}'s renders are no longer needed"
+            )));
         };
         let group = &mut job.groups[pos];
         group.accumulate(&lease.piece, &counts, scatter_events);
@@ -537,10 +541,7 @@ impl Core {
             u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
         job.session_photons += photons;
         self.counters.photons += photons;
-        let leased_elsewhere = self
-            .leases
-            .values()
-            .any(|l| l.group == lease.group);
+        let leased_elsewhere = self.leases.values().any(|l| l.group == lease.group);
         if job.groups[pos].is_complete() && !leased_elsewhere {
             let group: RenderGroup = job.groups.remove(pos);
             self.counters.renders_completed += group.items.len() as u64;
@@ -552,7 +553,14 @@ impl Core {
     }
 
     /// A worker gives a task back.
-    pub fn release(&mut self, worker: &str, job: &str, task: u64, attempt: u32, reason: &str) -> Result<(), Refusal> {
+    pub fn release(
+        &mut self,
+        worker: &str,
+        job: &str,
+        task: u64,
+        attempt: u32,
+        reason: &str,
+    ) -> Result<(), Refusal> {
         let lease = self.check_lease(worker, job, task, attempt)?.clone();
         tracing::warn!("worker {worker} gave back task {task}: {reason}");
         self.leases.remove(&task);
@@ -575,7 +583,10 @@ impl Core {
             .map(|w| w.id.clone())
             .collect();
         for id in &gone {
-            tracing::warn!("worker {id} missed {} heartbeats: forgotten", self.settings.missed_heartbeats);
+            tracing::warn!(
+                "worker {id} missed {} heartbeats: forgotten",
+                self.settings.missed_heartbeats
+            );
             self.workers.remove(id);
         }
         let expired: Vec<u64> = self

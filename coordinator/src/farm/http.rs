@@ -50,10 +50,7 @@ impl Rates {
         match (self.samples.front(), self.samples.back()) {
             (Some(a), Some(b)) if b.0 > a.0 => {
                 let dt = b.0.duration_since(a.0).as_secs_f64();
-                (
-                    (b.1 - a.1) as f64 / dt,
-                    (b.2 - a.2) as f64 / dt,
-                )
+                ((b.1 - a.1) as f64 / dt, (b.2 - a.2) as f64 / dt)
             }
             _ => (0.0, 0.0),
         }
@@ -128,7 +125,11 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
     let jobs = Family::<Labels, Gauge>::default();
     reg.register("jobs", "Jobs by state", jobs.clone());
     for state in ["preparing", "searching", "finished", "cancelled", "failed"] {
-        let n = s.jobs.iter().filter(|j| state_name(j.state) == state).count();
+        let n = s
+            .jobs
+            .iter()
+            .filter(|j| state_name(j.state) == state)
+            .count();
         jobs.get_or_create(&vec![("state".into(), state.into())])
             .set(n as i64);
     }
@@ -142,8 +143,18 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
         c.inc_by(v);
         reg.register(name, help, c);
     };
-    gauge(&mut reg, "tasks_leased", "Tasks leased to workers now", s.tasks_leased as f64);
-    gauge(&mut reg, "workers", "Registered workers", s.workers.len() as f64);
+    gauge(
+        &mut reg,
+        "tasks_leased",
+        "Tasks leased to workers now",
+        s.tasks_leased as f64,
+    );
+    gauge(
+        &mut reg,
+        "workers",
+        "Registered workers",
+        s.workers.len() as f64,
+    );
     let busy = s.workers.iter().filter(|w| w.leased > 0).count();
     gauge(
         &mut reg,
@@ -155,19 +166,66 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
             busy as f64 / s.workers.len() as f64
         },
     );
-    gauge(&mut reg, "renders_per_second", "Renders completed per second over the last 10 s", rates.0);
-    gauge(&mut reg, "photons_per_second", "Photons rendered per second over the last 10 s", rates.1);
-    counter(&mut reg, "renders", "Renders completed since the coordinator started", s.counters.renders_completed);
-    counter(&mut reg, "photons", "Photons in accepted results since the coordinator started", s.counters.photons);
-    counter(&mut reg, "lease_expiries", "Leases handed out again after a deadline or lost heartbeats", s.counters.leases_expired);
-    counter(&mut reg, "results_refused", "Results refused (stale, malformed or impossible)", s.counters.results_refused);
-    counter(&mut reg, "results_accepted", "Results accepted", s.counters.results_accepted);
+    gauge(
+        &mut reg,
+        "renders_per_second",
+        "Renders completed per second over the last 10 s",
+        rates.0,
+    );
+    gauge(
+        &mut reg,
+        "photons_per_second",
+        "Photons rendered per second over the last 10 s",
+        rates.1,
+    );
+    counter(
+        &mut reg,
+        "renders",
+        "Renders completed since the coordinator started",
+        s.counters.renders_completed,
+    );
+    counter(
+        &mut reg,
+        "photons",
+        "Photons in accepted results since the coordinator started",
+        s.counters.photons,
+    );
+    counter(
+        &mut reg,
+        "lease_expiries",
+        "Leases handed out again after a deadline or lost heartbeats",
+        s.counters.leases_expired,
+    );
+    counter(
+        &mut reg,
+        "results_refused",
+        "Results refused (stale, malformed or impossible)",
+        s.counters.results_refused,
+    );
+    counter(
+        &mut reg,
+        "results_accepted",
+        "Results accepted",
+        s.counters.results_accepted,
+    );
     let progress = Family::<Labels, Gauge<f64, AtomicU64>>::default();
-    reg.register("job_progress", "Share of a job's renders done", progress.clone());
+    reg.register(
+        "job_progress",
+        "Share of a job's renders done",
+        progress.clone(),
+    );
     let renders_done = Family::<Labels, Gauge>::default();
-    reg.register("job_renders_done", "Renders a job has done", renders_done.clone());
+    reg.register(
+        "job_renders_done",
+        "Renders a job has done",
+        renders_done.clone(),
+    );
     let renders_total = Family::<Labels, Gauge>::default();
-    reg.register("job_renders_total", "Renders a job needs in all", renders_total.clone());
+    reg.register(
+        "job_renders_total",
+        "Renders a job needs in all",
+        renders_total.clone(),
+    );
     for j in &s.jobs {
         let labels = vec![
             ("job".to_string(), j.job_id.clone()),
@@ -176,8 +234,12 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
         progress
             .get_or_create(&labels)
             .set(j.renders_done as f64 / j.renders_total.max(1) as f64);
-        renders_done.get_or_create(&labels).set(j.renders_done as i64);
-        renders_total.get_or_create(&labels).set(j.renders_total as i64);
+        renders_done
+            .get_or_create(&labels)
+            .set(j.renders_done as i64);
+        renders_total
+            .get_or_create(&labels)
+            .set(j.renders_total as i64);
     }
     let mut out = String::new();
     encode(&mut out, &reg).context("cannot encode the metrics")?;
@@ -399,7 +461,10 @@ mod tests {
 
     #[test]
     fn html_is_escaped() {
-        assert_eq!(esc("<a href=\"x\">&'"), "&lt;a href=&quot;x&quot;&gt;&amp;&#39;");
+        assert_eq!(
+            esc("<a href=\"x\">&'"),
+            "&lt;a href=&quot;x&quot;&gt;&amp;&#39;"
+        );
     }
 
     #[test]

@@ -17,7 +17,12 @@ pub fn identity(
     let mut h = Sha256::new();
     h.update(b"scatterfarm-render/1\0");
     h.update(geometry.size_mm.to_le_bytes());
-    for v in [geometry.grid, geometry.positions, geometry.directions, photons] {
+    for v in [
+        geometry.grid,
+        geometry.positions,
+        geometry.directions,
+        photons,
+    ] {
         h.update(v.to_le_bytes());
     }
     h.update(seed.to_le_bytes());

@@ -68,8 +68,9 @@ pub struct Job {
     pub plan: Plan,
     pub progress: Progress,
     scoring: Option<Scoring>,
-    /// Scores of completed search renders, by identity (also in the store).
-    scores: HashMap<[u8; 32], f64>,
+    /// Scores of completed search renders, by identity, with the index of the first request
+    /// of the step they were rendered for (also in the store).
+    scores: HashMap<[u8; 32], (f64, u64)>,
     setup: SetupCounts,
     /// The groups being rendered now.
     pub groups: Vec<RenderGroup>,
@@ -133,7 +134,14 @@ impl Job {
         // The record goes last: a job without one is not loaded, so a crash mid-submission
         // leaves nothing visible.
         store.put_record(&id, &serde_json::to_vec(&record)?)?;
-        Ok(Job::assemble(id, record, plan, progress, HashMap::new(), None))
+        Ok(Job::assemble(
+            id,
+            record,
+            plan,
+            progress,
+            HashMap::new(),
+            None,
+        ))
     }
 
     /// Loads a stored job.
@@ -191,7 +199,7 @@ impl Job {
         record: JobRecord,
         plan: Plan,
         progress: Progress,
-        scores: HashMap<[u8; 32], f64>,
+        scores: HashMap<[u8; 32], (f64, u64)>,
         scoring: Option<Scoring>,
     ) -> Job {
         let renders = progress.search.progress().renders_done;
@@ -277,7 +285,11 @@ impl Job {
     /// Makes sure the job has groups to render if it needs any: the missing setup renders, or
     /// the current step's unscored renders. Steps whose renders are all scored are submitted
     /// on the way. Needs the job pinned.
-    pub fn plan_work(&mut self, new_group_id: &mut dyn FnMut() -> u64, store: &dyn Store) -> Result<()> {
+    pub fn plan_work(
+        &mut self,
+        new_group_id: &mut dyn FnMut() -> u64,
+        store: &dyn Store,
+    ) -> Result<()> {
         if !self.groups.is_empty() || !self.is_active() {
             return Ok(());
         }
@@ -336,7 +348,14 @@ impl Job {
                 .pending()
                 .iter()
                 .map(|r| GroupItem {
-                    identity: identity(&r.assignment, &table, geometry, r.seed, photons, &fingerprint),
+                    identity: identity(
+                        &r.assignment,
+                        &table,
+                        geometry,
+                        r.seed,
+                        photons,
+                        &fingerprint,
+                    ),
                     item: scatterfarm_worker::RenderItem {
                         assignment: r.assignment.clone(),
                         seed: r.seed,
@@ -362,9 +381,20 @@ impl Job {
                 ));
                 return Ok(());
             }
-            let scores: Vec<f64> = pending.iter().map(|p| self.scores[&p.identity]).collect();
+            let scores: Vec<f64> = pending.iter().map(|p| self.scores[&p.identity].0).collect();
+            // Renders made for this step (not cache hits), counted once each: the same count
+            // whether or not the coordinator restarted meanwhile.
+            let step = self.progress.search.pending().first().map(|r| r.index);
+            let mut rendered: Vec<[u8; 32]> = pending
+                .iter()
+                .filter(|p| Some(self.scores[&p.identity].1) == step)
+                .map(|p| p.identity)
+                .collect();
+            rendered.sort_unstable();
+            rendered.dedup();
+            let n = rendered.len() as u64;
             self.progress.search.submit(&scores)?;
-            let n = pending.len() as u64;
+            self.progress.used.requests += pending.len() as u64;
             self.progress.used.renders += n;
             self.progress.used.photons += n * sources * u64::from(photons);
             self.persist(store)?;
@@ -394,7 +424,11 @@ impl Job {
         tracing::info!(
             "job {} finished: similarity {:.4}",
             self.id,
-            self.progress.search.result().map(|r| r.score).unwrap_or(f64::NAN)
+            self.progress
+                .search
+                .result()
+                .map(|r| r.score)
+                .unwrap_or(f64::NAN)
         );
         Ok(())
     }
@@ -426,6 +460,13 @@ impl Job {
                     .scoring
                     .as_ref()
                     .context("a search render completed before ε was calibrated")?;
+                let step = self
+                    .progress
+                    .search
+                    .pending()
+                    .first()
+                    .map(|r| r.index)
+                    .unwrap_or(0);
                 for (id, counts) in items.iter().zip(&sums) {
                     let s = similarity::score(
                         scoring.metric,
@@ -434,8 +475,8 @@ impl Job {
                         u64::from(photons),
                         scoring.epsilon,
                     )?;
-                    self.scores.insert(*id, s);
-                    store.put_score(&self.id, id, s)?;
+                    self.scores.insert(*id, (s, step));
+                    store.put_score(&self.id, id, s, step)?;
                 }
             }
         }

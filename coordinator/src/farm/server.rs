@@ -56,12 +56,8 @@ pub async fn start(
     let address = listener.local_addr()?;
 
     let (health, health_service) = tonic_health::server::health_reporter();
-    health
-        .set_serving::<WorkerServiceServer<WorkerApi>>()
-        .await;
-    health
-        .set_serving::<ClientServiceServer<ClientApi>>()
-        .await;
+    health.set_serving::<WorkerServiceServer<WorkerApi>>().await;
+    health.set_serving::<ClientServiceServer<ClientApi>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .build_v1()
@@ -118,8 +114,12 @@ pub async fn start(
             shutdown.await;
             tracing::info!("draining: no new tasks; waiting for leased tasks to come back");
             farm.core().draining = true;
-            health.set_not_serving::<WorkerServiceServer<WorkerApi>>().await;
-            health.set_not_serving::<ClientServiceServer<ClientApi>>().await;
+            health
+                .set_not_serving::<WorkerServiceServer<WorkerApi>>()
+                .await;
+            health
+                .set_not_serving::<ClientServiceServer<ClientApi>>()
+                .await;
             health
                 .set_service_status("", tonic_health::ServingStatus::NotServing)
                 .await;
@@ -129,7 +129,9 @@ pub async fn start(
             }
             let left = farm.core().leases.len();
             if left > 0 {
-                tracing::warn!("{left} leased tasks did not come back; they are re-rendered on restart");
+                tracing::warn!(
+                    "{left} leased tasks did not come back; they are re-rendered on restart"
+                );
             }
             if let Err(e) = farm.core().store().flush() {
                 tracing::error!("cannot flush the store: {e}");

@@ -135,12 +135,15 @@ impl WorkerService for WorkerApi {
             return Err(Status::failed_precondition(format!(
                 "protocol version mismatch: the worker speaks {}.{}, this coordinator {}.{}; \
                  run the same scatterfarm release on both",
-                theirs.major, theirs.minor, pb::PROTOCOL.major, pb::PROTOCOL.minor
+                theirs.major,
+                theirs.minor,
+                pb::PROTOCOL.major,
+                pb::PROTOCOL.minor
             )));
         }
-        let f = r
-            .fingerprint
-            .ok_or_else(|| Status::invalid_argument("registration without an engine fingerprint"))?;
+        let f = r.fingerprint.ok_or_else(|| {
+            Status::invalid_argument("registration without an engine fingerprint")
+        })?;
         let mut core = self.0.core();
         if core.draining {
             return Err(Status::unavailable("the coordinator is draining"));
@@ -191,9 +194,7 @@ impl WorkerService for WorkerApi {
                 }
                 Err(reason) => {
                     let left = until.saturating_duration_since(Instant::now());
-                    if left.is_zero()
-                        || tokio::time::timeout(left, notified).await.is_err()
-                    {
+                    if left.is_zero() || tokio::time::timeout(left, notified).await.is_err() {
                         return Ok(Response::new(pb::LeaseResponse {
                             task: None,
                             retry_after_ms: 500,
@@ -320,7 +321,10 @@ impl ClientService for ClientApi {
         Ok(Response::new(pb::SubmitResponse { job_id: id }))
     }
 
-    async fn status(&self, request: Request<pb::JobRef>) -> Result<Response<pb::JobStatus>, Status> {
+    async fn status(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::JobStatus>, Status> {
         let core = self.0.core();
         let job = core.job(&request.into_inner().job_id)?;
         Ok(Response::new(job_status(&core, job)))
@@ -368,7 +372,10 @@ impl ClientService for ClientApi {
         )))
     }
 
-    async fn result(&self, request: Request<pb::JobRef>) -> Result<Response<pb::JobResult>, Status> {
+    async fn result(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::JobResult>, Status> {
         let id = request.into_inner().job_id;
         let farm = self.0.clone();
         let result = tokio::task::spawn_blocking(move || -> Result<pb::JobResult, Status> {
@@ -392,12 +399,18 @@ impl ClientService for ClientApi {
         Ok(Response::new(result))
     }
 
-    async fn cancel(&self, request: Request<pb::JobRef>) -> Result<Response<pb::CancelResponse>, Status> {
+    async fn cancel(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::CancelResponse>, Status> {
         self.0.core().cancel(&request.into_inner().job_id)?;
         Ok(Response::new(pb::CancelResponse {}))
     }
 
-    async fn delete(&self, request: Request<pb::JobRef>) -> Result<Response<pb::DeleteResponse>, Status> {
+    async fn delete(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::DeleteResponse>, Status> {
         self.0.core().delete(&request.into_inner().job_id)?;
         Ok(Response::new(pb::DeleteResponse {}))
     }

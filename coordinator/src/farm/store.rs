@@ -46,9 +46,16 @@ pub trait Store: Send + Sync {
     /// A named blob of a job (setup products such as the target, final outputs).
     fn put_blob(&self, job: &str, name: &str, bytes: &[u8]) -> Result<(), StoreError>;
     fn blob(&self, job: &str, name: &str) -> Result<Option<Vec<u8>>, StoreError>;
-    /// The score of a completed render, keyed by its identity.
-    fn put_score(&self, job: &str, identity: &[u8; 32], score: f64) -> Result<(), StoreError>;
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], f64>, StoreError>;
+    /// The score of a completed render, keyed by its identity, with the first request index
+    /// of the search step it was rendered for.
+    fn put_score(
+        &self,
+        job: &str,
+        identity: &[u8; 32],
+        score: f64,
+        step: u64,
+    ) -> Result<(), StoreError>;
+    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (f64, u64)>, StoreError>;
     /// Removes everything of a job.
     fn delete_job(&self, job: &str) -> Result<(), StoreError>;
     /// Makes every write so far durable.
@@ -165,14 +172,22 @@ impl Store for SledStore {
             .map(|v| v.to_vec()))
     }
 
-    fn put_score(&self, job: &str, identity: &[u8; 32], score: f64) -> Result<(), StoreError> {
+    fn put_score(
+        &self,
+        job: &str,
+        identity: &[u8; 32],
+        score: f64,
+        step: u64,
+    ) -> Result<(), StoreError> {
         // Not flushed here: the next progress write flushes, and a lost score is re-rendered.
-        self.scores
-            .insert(prefixed(job, identity), &score.to_le_bytes())?;
+        let mut value = [0u8; 16];
+        value[..8].copy_from_slice(&score.to_le_bytes());
+        value[8..].copy_from_slice(&step.to_le_bytes());
+        self.scores.insert(prefixed(job, identity), &value)?;
         Ok(())
     }
 
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], f64>, StoreError> {
+    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (f64, u64)>, StoreError> {
         let p = prefix(job);
         let mut out = BTreeMap::new();
         for kv in self.scores.scan_prefix(&p) {
@@ -181,13 +196,14 @@ impl Store for SledStore {
                 what: "score key",
                 detail: format!("{} bytes", k.len()),
             })?;
-            let score = <[u8; 8]>::try_from(v.as_ref())
-                .map(f64::from_le_bytes)
-                .map_err(|_| StoreError::Damaged {
-                    what: "score",
-                    detail: format!("{} bytes", v.len()),
-                })?;
-            out.insert(id, score);
+            let value = <[u8; 16]>::try_from(v.as_ref()).map_err(|_| StoreError::Damaged {
+                what: "score",
+                detail: format!("{} bytes", v.len()),
+            })?;
+            let (score, step) = value.split_at(8);
+            let score = f64::from_le_bytes(score.try_into().unwrap_or_default());
+            let step = u64::from_le_bytes(step.try_into().unwrap_or_default());
+            out.insert(id, (score, step));
         }
         Ok(out)
     }
@@ -232,16 +248,16 @@ mod tests {
             s.put_record(&b, b"rec-b").unwrap();
             s.put_progress(&a, b"p1").unwrap();
             s.put_progress(&a, b"p2").unwrap();
-            s.put_score(&a, &[7; 32], 0.25).unwrap();
-            s.put_score(&b, &[7; 32], 0.5).unwrap();
+            s.put_score(&a, &[7; 32], 0.25, 3).unwrap();
+            s.put_score(&b, &[7; 32], 0.5, 4).unwrap();
             s.put_blob(&a, "target", b"xyz").unwrap();
             s.flush().unwrap();
         }
         let s = SledStore::open(dir.path()).unwrap();
         assert_eq!(s.records().unwrap().len(), 2);
         assert_eq!(s.progress(&a).unwrap().as_deref(), Some(&b"p2"[..]));
-        assert_eq!(s.scores(&a).unwrap().get(&[7; 32]), Some(&0.25));
-        assert_eq!(s.scores(&b).unwrap().get(&[7; 32]), Some(&0.5));
+        assert_eq!(s.scores(&a).unwrap().get(&[7; 32]), Some(&(0.25, 3)));
+        assert_eq!(s.scores(&b).unwrap().get(&[7; 32]), Some(&(0.5, 4)));
         assert_eq!(s.blob(&a, "target").unwrap().as_deref(), Some(&b"xyz"[..]));
         s.delete_job(&a).unwrap();
         assert_eq!(s.records().unwrap().len(), 1);

@@ -90,7 +90,11 @@ impl RenderGroup {
 
     /// The next piece: a handed-back one (next attempt), else up to `max_photons` new photons.
     /// `new_task_id` gives ids to new pieces.
-    pub fn take(&mut self, max_photons: u32, new_task_id: &mut dyn FnMut() -> u64) -> Option<Piece> {
+    pub fn take(
+        &mut self,
+        max_photons: u32,
+        new_task_id: &mut dyn FnMut() -> u64,
+    ) -> Option<Piece> {
         if let Some(mut p) = self.requeue.pop_front() {
             p.attempt += 1;
             return Some(p);
@@ -270,7 +274,10 @@ mod tests {
         let mut g = group(10);
         let p = g.take(10, &mut || 1).unwrap();
         let mut c = render(&g, &p);
-        assert!(g.check(&p, &c[..1]).unwrap_err().contains("1 count matrices"));
+        assert!(g
+            .check(&p, &c[..1])
+            .unwrap_err()
+            .contains("1 count matrices"));
         c[1].counts[0] += 11;
         assert!(g.check(&p, &c).unwrap_err().contains("exited"));
         let wrong = vec![CountMatrix::zeros(3, 3); 2];

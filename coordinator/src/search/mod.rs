@@ -26,6 +26,19 @@ pub enum Candidates {
     Random { per_level: u32, bounds: Bounds },
 }
 
+/// How render requests get their seeds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Seeding {
+    /// The paper's: every request its own seed, `hash(S, "render", n)`.
+    #[default]
+    PerRequest,
+    /// Common random numbers: every request of a level shares `hash(S, "render-level", ℓ)`,
+    /// so scores inside a level differ by the material change, not by noise, and an assignment
+    /// asked for twice in a level is the same render (cached by identity).
+    PerLevel,
+}
+
 /// What fixes a search.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SearchConfig {
@@ -36,6 +49,8 @@ pub struct SearchConfig {
     /// The job seed: permutations, random materials and render seeds derive from it.
     pub seed: u64,
     pub candidates: Candidates,
+    #[serde(default)]
+    pub seeding: Seeding,
 }
 
 /// Why a search cannot start or go on.
@@ -326,6 +341,8 @@ impl Search {
     }
 
     fn emit(&mut self, assignments: Vec<Vec<u16>>, step2: bool) {
+        let level = self.state.as_ref().map(|s| s.level).unwrap_or(0);
+        let (seed, seeding) = (self.config.seed, self.config.seeding);
         self.pending = assignments
             .into_iter()
             .map(|assignment| {
@@ -333,7 +350,10 @@ impl Search {
                 self.next_request += 1;
                 RenderRequest {
                     index,
-                    seed: seeds::derive(self.config.seed, Stream::Render(index)),
+                    seed: match seeding {
+                        Seeding::PerRequest => seeds::derive(seed, Stream::Render(index)),
+                        Seeding::PerLevel => seeds::derive(seed, Stream::LevelRender(level)),
+                    },
                     assignment,
                 }
             })

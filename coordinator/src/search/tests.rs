@@ -18,6 +18,7 @@ fn search(grid: u32, permutations: u32, seed: u64, dictionary: Vec<u16>) -> Sear
         permutations,
         seed,
         candidates: Candidates::Dictionary(dictionary),
+        seeding: Seeding::PerRequest,
     };
     Search::new(config, table(&names)).unwrap()
 }
@@ -208,6 +209,7 @@ fn unknown_materials_grow_the_table_and_keep_inherited_candidates() {
             per_level: 3,
             bounds: Bounds::default(),
         },
+        seeding: Seeding::PerRequest,
     };
     let mut s = Search::new(config, MaterialTable::default()).unwrap();
     assert_eq!(s.table().len(), 3);
@@ -238,6 +240,7 @@ fn bad_configurations_and_submissions_are_refused() {
                 permutations,
                 seed: 1,
                 candidates,
+                seeding: Seeding::PerRequest,
             },
             t.clone(),
         )
@@ -271,4 +274,32 @@ fn bad_configurations_and_submissions_are_refused() {
         s.submit(&[f64::NAN, 1.0]),
         Err(SearchError::ScoreNaN(_))
     ));
+}
+
+#[test]
+fn per_level_seeding_shares_one_seed_per_level() {
+    let mut s = Search::new(
+        SearchConfig {
+            grid: 4,
+            permutations: 2,
+            seed: 9,
+            candidates: Candidates::Dictionary(vec![0, 1]),
+            seeding: Seeding::PerLevel,
+        },
+        table(&["a", "b"]),
+    )
+    .unwrap();
+    let mut seen: Vec<(u32, u64)> = Vec::new();
+    while !s.is_finished() {
+        let level = s.progress().level;
+        let seeds: Vec<u64> = s.pending().iter().map(|r| r.seed).collect();
+        assert!(seeds.iter().all(|&x| x == seeds[0]));
+        assert_eq!(seeds[0], seeds::derive(9, Stream::LevelRender(level)));
+        seen.push((level, seeds[0]));
+        let scores: Vec<f64> = (0..seeds.len()).map(|i| i as f64).collect();
+        s.submit(&scores).unwrap();
+    }
+    let mut levels: Vec<u64> = seen.iter().map(|&(_, x)| x).collect();
+    levels.dedup();
+    assert_eq!(levels.len(), 3, "one seed per level: {seen:?}");
 }
