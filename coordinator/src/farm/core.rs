@@ -536,7 +536,7 @@ impl Core {
             )));
         };
         let group = &mut job.groups[pos];
-        group.accumulate(&lease.piece, &counts, scatter_events);
+        group.accumulate(&lease.piece, counts, scatter_events);
         let photons =
             u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
         job.session_photons += photons;

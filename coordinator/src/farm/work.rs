@@ -53,6 +53,8 @@ pub struct RenderGroup {
     requeue: VecDeque<Piece>,
     /// Photons per source summed so far.
     done: u64,
+    /// Empty until the first piece arrives, whose matrices become the sums (no zero-filled
+    /// 5 MB buffers, no first addition).
     sums: Vec<CountMatrix>,
     /// Scattering events reported with the summed pieces.
     pub scatter_events: u64,
@@ -67,7 +69,7 @@ impl RenderGroup {
         items: Vec<GroupItem>,
         photons: u32,
     ) -> RenderGroup {
-        let sums = vec![CountMatrix::zeros(geometry.sources(), geometry.bins()); items.len()];
+        let sums = Vec::new();
         RenderGroup {
             id,
             purpose,
@@ -152,10 +154,14 @@ impl RenderGroup {
     }
 
     /// Adds a checked piece's counts.
-    pub fn accumulate(&mut self, piece: &Piece, counts: &[CountMatrix], scatter_events: u64) {
-        for (sum, c) in self.sums.iter_mut().zip(counts) {
-            for (a, b) in sum.counts.iter_mut().zip(&c.counts) {
-                *a += *b;
+    pub fn accumulate(&mut self, piece: &Piece, counts: Vec<CountMatrix>, scatter_events: u64) {
+        if self.sums.is_empty() {
+            self.sums = counts;
+        } else {
+            for (sum, c) in self.sums.iter_mut().zip(&counts) {
+                for (a, b) in sum.counts.iter_mut().zip(&c.counts) {
+                    *a += *b;
+                }
             }
         }
         self.done += u64::from(piece.count);
@@ -174,6 +180,10 @@ impl RenderGroup {
 
     /// The summed counts, one per item.
     pub fn into_sums(self) -> Vec<CountMatrix> {
+        if self.sums.is_empty() {
+            let zeros = CountMatrix::zeros(self.geometry.sources(), self.geometry.bins());
+            return vec![zeros; self.items.len()];
+        }
         self.sums
     }
 }
@@ -246,7 +256,7 @@ mod tests {
         let all = whole.take(1000, &mut next).unwrap();
         assert_eq!((all.first, all.count), (0, 100));
         let c = render(&whole, &all);
-        whole.accumulate(&all, &c, 0);
+        whole.accumulate(&all, c, 0);
         assert!(whole.is_complete());
 
         let mut cut = group(100);
@@ -263,7 +273,7 @@ mod tests {
         for p in [d, a, b2, c2] {
             let counts = render(&cut, &p);
             cut.check(&p, &counts).unwrap();
-            cut.accumulate(&p, &counts, 0);
+            cut.accumulate(&p, counts, 0);
         }
         assert!(cut.is_complete());
         assert_eq!(cut.into_sums(), whole.into_sums());
