@@ -286,7 +286,7 @@ fn per_level_seeding_shares_one_seed_per_level() {
             candidates: Candidates::Dictionary(vec![0, 1]),
             seeding: Seeding::PerLevel,
         },
-        table(&["a", "b"]),
+        table(&["moderate", "opaque"]),
     )
     .unwrap();
     let mut seen: Vec<(u32, u64)> = Vec::new();
