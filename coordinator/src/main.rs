@@ -11,7 +11,12 @@ use tracing_subscriber::EnvFilter;
 ///
 /// Logs go to stderr; set RUST_LOG (e.g. RUST_LOG=debug) for more.
 #[derive(Debug, Parser)]
-#[command(name = "scatterfarm", version, about, long_about = None)]
+#[command(
+    name = "scatterfarm",
+    version,
+    about = "Reconstructs what is inside a scattering medium from light measured at its boundary: alone, or as a render farm of a coordinator and GPU workers.",
+    long_about = None
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
