@@ -2,6 +2,7 @@
 //! `workers`, each a call (or a stream) of the coordinator's `ClientService`.
 
 use super::connect::ConnectArgs;
+use crate::farm::service::{duration_text, state_name};
 use crate::inputs::Inputs;
 use crate::params::JobParams;
 use crate::plan::Plan;
@@ -108,17 +109,6 @@ pub struct StatusArgs {
     pub json: bool,
 }
 
-fn state_name(state: i32) -> &'static str {
-    match pb::JobState::try_from(state) {
-        Ok(pb::JobState::Preparing) => "preparing",
-        Ok(pb::JobState::Searching) => "searching",
-        Ok(pb::JobState::Finished) => "finished",
-        Ok(pb::JobState::Cancelled) => "cancelled",
-        Ok(pb::JobState::Failed) => "failed",
-        _ => "unknown",
-    }
-}
-
 fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
 }
@@ -148,37 +138,40 @@ pub fn status_json(s: &pb::JobStatus) -> serde_json::Value {
     })
 }
 
-fn eta_text(s: &pb::JobStatus) -> String {
-    if s.eta_seconds < 0.0 {
-        return "?".into();
-    }
-    let t = s.eta_seconds.round() as u64;
-    format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
-}
-
-/// One line describing a job.
-pub fn status_line(s: &pb::JobStatus) -> String {
-    let mut line = format!(
-        "{} {} · level {}/{} · permutation {}/{} · region {}/{} · best {} · {}/{} renders · {:.2} M photons/s · ETA {} · {} workers busy",
-        s.job_id,
-        state_name(s.state),
+/// Level, permutation, region, best similarity, rate, ETA and workers busy, and what the job
+/// waits for.
+fn progress_text(s: &pb::JobStatus) -> String {
+    let mut text = format!(
+        "level {}/{} · permutation {}/{} · region {}/{} · best {} · {:.2} M photons/s · ETA {} · {} workers busy",
         s.level,
         s.levels.saturating_sub(1),
         (s.permutation + 1).min(s.permutations),
         s.permutations,
         s.region,
         s.regions,
-        finite(s.best_similarity).map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
-        s.renders_done,
-        s.renders_total,
+        finite(s.best_similarity)
+            .map(|v| format!("{v:.4}"))
+            .unwrap_or_else(|| "-".into()),
         s.photons_per_second / 1e6,
-        eta_text(s),
+        duration_text(s.eta_seconds),
         s.workers_busy
     );
     if !s.message.is_empty() && s.message != state_name(s.state) {
-        line.push_str(&format!(" · {}", s.message));
+        text.push_str(&format!(" · {}", s.message));
     }
-    line
+    text
+}
+
+/// One line describing a job.
+pub fn status_line(s: &pb::JobStatus) -> String {
+    format!(
+        "{} {} · {}/{} renders · {}",
+        s.job_id,
+        state_name(s.state),
+        s.renders_done,
+        s.renders_total,
+        progress_text(s)
+    )
 }
 
 pub fn run_status(args: StatusArgs) -> Result<()> {
@@ -241,24 +234,7 @@ pub async fn follow(
             Some(s) => {
                 bar.set_length(s.renders_total.max(1));
                 bar.set_position(s.renders_done);
-                let mut msg = format!(
-                    "{} · level {}/{} · permutation {}/{} · region {}/{} · best {} · {:.2} M photons/s · ETA {} · {} workers busy",
-                    state_name(s.state),
-                    s.level,
-                    s.levels.saturating_sub(1),
-                    (s.permutation + 1).min(s.permutations),
-                    s.permutations,
-                    s.region,
-                    s.regions,
-                    finite(s.best_similarity).map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
-                    s.photons_per_second / 1e6,
-                    eta_text(&s),
-                    s.workers_busy
-                );
-                if !s.message.is_empty() {
-                    msg.push_str(&format!(" · {}", s.message));
-                }
-                bar.set_message(msg);
+                bar.set_message(format!("{} · {}", state_name(s.state), progress_text(&s)));
                 last = Some(s);
             }
             None => break,

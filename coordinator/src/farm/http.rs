@@ -6,7 +6,7 @@
 //! are built after the lock is released.
 
 use super::core::Core;
-use super::service::{job_status, Farm};
+use super::service::{duration_text, job_status, state_name, Farm};
 use crate::picture;
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
@@ -104,17 +104,6 @@ fn snapshot(core: &Core) -> Snapshot {
         workers,
         tasks_leased: core.leases.len(),
         counters: core.counters,
-    }
-}
-
-fn state_name(state: i32) -> &'static str {
-    match pb::JobState::try_from(state) {
-        Ok(pb::JobState::Preparing) => "preparing",
-        Ok(pb::JobState::Searching) => "searching",
-        Ok(pb::JobState::Finished) => "finished",
-        Ok(pb::JobState::Cancelled) => "cancelled",
-        Ok(pb::JobState::Failed) => "failed",
-        _ => "unknown",
     }
 }
 
@@ -280,14 +269,6 @@ fn esc(text: &str) -> String {
         }
     }
     out
-}
-
-fn duration_text(seconds: f64) -> String {
-    if seconds < 0.0 || !seconds.is_finite() {
-        return "?".into();
-    }
-    let t = seconds.round() as u64;
-    format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
 }
 
 fn page(s: &Snapshot, rates: (f64, f64)) -> String {

@@ -292,6 +292,27 @@ pub fn job_status(core: &Core, job: &Job) -> pb::JobStatus {
     }
 }
 
+/// A job state's name in listings and pages.
+pub fn state_name(state: i32) -> &'static str {
+    match pb::JobState::try_from(state) {
+        Ok(pb::JobState::Preparing) => "preparing",
+        Ok(pb::JobState::Searching) => "searching",
+        Ok(pb::JobState::Finished) => "finished",
+        Ok(pb::JobState::Cancelled) => "cancelled",
+        Ok(pb::JobState::Failed) => "failed",
+        _ => "unknown",
+    }
+}
+
+/// Seconds as H:MM:SS, or "?" when unknown (negative or not finite).
+pub fn duration_text(seconds: f64) -> String {
+    if seconds < 0.0 || !seconds.is_finite() {
+        return "?".into();
+    }
+    let t = seconds.round() as u64;
+    format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
+}
+
 fn is_terminal(s: &pb::JobStatus) -> bool {
     matches!(
         pb::JobState::try_from(s.state),
