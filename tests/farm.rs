@@ -53,6 +53,19 @@ fn job_toml() -> String {
     text
 }
 
+/// The same job with the faster search, whose every option is on by default (racing,
+/// re-scoring, early step 2, common random numbers): `job/fast.toml`.
+fn fast_job_toml() -> String {
+    format!("{}search = \"fast\"\n", job_toml())
+}
+
+/// Which of the two jobs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Search {
+    Paper,
+    Fast,
+}
+
 /// The files `scatterfarm result` writes.
 const RESULT_FILES: [&str; 5] = [
     "report.json",
@@ -68,16 +81,24 @@ struct Reference {
     npy: Vec<u8>,
 }
 
-/// Computed once, by the first test that needs it.
-fn reference() -> &'static Reference {
-    static REFERENCE: OnceLock<Reference> = OnceLock::new();
-    REFERENCE.get_or_init(|| {
+/// Computed once per search, by the first test that needs it.
+fn reference_of(search: Search) -> &'static Reference {
+    static PAPER: OnceLock<Reference> = OnceLock::new();
+    static FAST: OnceLock<Reference> = OnceLock::new();
+    let cell = match search {
+        Search::Paper => &PAPER,
+        Search::Fast => &FAST,
+    };
+    cell.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("three.toml"), SCENE).unwrap();
         let mut cmd = scatterfarm();
         cmd.args(["reconstruct", "--scene", "three.toml"]);
         for (key, value) in JOB_KEYS {
             cmd.arg(format!("--{}", key.replace('_', "-"))).arg(value);
+        }
+        if search == Search::Fast {
+            cmd.args(["--search", "fast"]);
         }
         cmd.args(["--engine", "cpu", "--quiet", "--out", "out"])
             .current_dir(dir.path());
@@ -90,6 +111,11 @@ fn reference() -> &'static Reference {
             npy: std::fs::read(out.join("materials.npy")).unwrap(),
         }
     })
+}
+
+/// The paper's job's reference.
+fn reference() -> &'static Reference {
+    reference_of(Search::Paper)
 }
 
 // ---- processes ----------------------------------------------------------------------------
@@ -277,6 +303,7 @@ impl Farm {
         std::fs::create_dir(root.path().join("job")).unwrap();
         std::fs::write(root.path().join("job/three.toml"), SCENE).unwrap();
         std::fs::write(root.path().join("job/job.toml"), job_toml()).unwrap();
+        std::fs::write(root.path().join("job/fast.toml"), fast_job_toml()).unwrap();
         Farm {
             coordinator: None,
             workers: Vec::new(),
@@ -440,7 +467,12 @@ impl Farm {
 
     /// Submits `job/job.toml`; the job id `submit` printed, alone on stdout.
     fn submit(&self) -> String {
-        let out = self.ok(&["submit", "job/job.toml"]);
+        self.submit_file("job/job.toml")
+    }
+
+    /// Submits a job file of the farm's folder; the job id.
+    fn submit_file(&self, file: &str) -> String {
+        let out = self.ok(&["submit", file]);
         let id = out.trim().to_string();
         assert!(
             !id.is_empty() && !id.contains(char::is_whitespace) && out == format!("{id}\n"),
@@ -543,8 +575,12 @@ impl Farm {
     /// (but for the wall time, and the photons simulated, which grow when renders are redone
     /// after a coordinator restart).
     fn assert_reference_result(&self, id: &str, redone: bool) {
+        self.assert_result_of(Search::Paper, id, redone);
+    }
+
+    fn assert_result_of(&self, search: Search, id: &str, redone: bool) {
         let (report, npy) = self.result(id);
-        let r = reference();
+        let r = reference_of(search);
         assert!(
             npy == r.npy,
             "materials.npy of job {id} differs from `scatterfarm reconstruct`'s\nfarm: {report:#}\n{}",
@@ -933,6 +969,46 @@ fn a_coordinator_killed_three_times_resumes_to_the_same_result() {
         assert!(w.running(), "{} died:\n{}", w.what, w.log_text());
     }
     farm.wait_workers(&["a", "b"]);
+}
+
+#[test]
+fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
+    // Racing (first stages extended by their contenders' groups), re-scoring, early step 2
+    // and common random numbers, across processes and a coordinator killed mid-search, which
+    // loses the first-stage counts it held.
+    let mut farm = Farm::start(&["--task-seconds", "0.05"]);
+    farm.start_worker("a", &[]);
+    farm.start_worker("b", &[]);
+    farm.wait_workers(&["a", "b"]);
+    let id = farm.submit_file("job/fast.toml");
+    let before = farm.wait_for(&id, "half of the requests", |s| {
+        s["state"] == "searching" && fraction(s) > 0.5
+    });
+    farm.kill_coordinator();
+    farm.start_coordinator();
+    let after = farm.status(&id);
+    assert!(
+        after["renders_done"].as_u64() >= before["renders_done"].as_u64(),
+        "before the kill: {before:#}\nafter the restart: {after:#}"
+    );
+    farm.wait_finished(&id);
+    farm.assert_result_of(Search::Fast, &id, true);
+    let (report, _) = farm.result(&id);
+    let config = &report["configuration"];
+    assert_eq!(config["search"], "fast", "{config:#}");
+    assert!(
+        config["race"].is_object() && config["rescore_photons"].is_u64(),
+        "{config:#}"
+    );
+    // One ε per budget: the level's, racing's first stage, re-scoring's.
+    assert!(
+        report["epsilons"].as_object().unwrap().len() >= 3,
+        "{report:#}"
+    );
+    // Fewer photons than the paper's search of the same job, from the same request logic.
+    let paper = reference().report["photons"].as_u64().unwrap();
+    let fast = report["photons"].as_u64().unwrap();
+    assert!(fast * 4 < paper, "fast {fast} photons, paper {paper}");
 }
 
 #[test]

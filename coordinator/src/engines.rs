@@ -97,12 +97,25 @@ pub fn render_in_chunks(
     chunk: u32,
     on_chunk: &mut dyn FnMut(u32),
 ) -> Result<Rendered> {
+    render_range(engine, geometry, table, items, 0..photons, chunk, on_chunk)
+}
+
+/// Renders `items` over the photons `range` of every source, in chunks of `chunk` photons.
+pub fn render_range(
+    engine: &dyn Engine,
+    geometry: Geometry,
+    table: &[Material],
+    items: &[RenderItem],
+    range: std::ops::Range<u32>,
+    chunk: u32,
+    on_chunk: &mut dyn FnMut(u32),
+) -> Result<Rendered> {
     ensure!(chunk > 0, "a render chunk needs at least one photon");
     let mut counts = vec![CountMatrix::zeros(geometry.sources(), geometry.bins()); items.len()];
     let mut scatter_events = 0;
-    let mut first = 0u32;
-    while first < photons {
-        let count = chunk.min(photons - first);
+    let mut first = range.start;
+    while first < range.end {
+        let count = chunk.min(range.end - first);
         let batch = RenderBatch {
             geometry,
             table,

@@ -11,6 +11,7 @@
 //! - [`inputs`]: the input files a reconstruction names, held in memory.
 //! - [`plan`]: parameters and inputs resolved; the renders needed before the search.
 //! - [`reconstruction`]: rendering a plan's setup and driving the search in one process.
+//! - [`prefixes`]: racing's first-stage counts, which a contender's full render extends.
 //! - [`farm`]: the coordinator service: jobs, leases, the store, gRPC.
 //! - [`report`]: the contents of `report.json`.
 //! - [`outcome`]: a reconstruction's outputs and its measures against a known truth.
@@ -25,6 +26,7 @@ pub mod outcome;
 pub mod params;
 pub mod picture;
 pub mod plan;
+pub mod prefixes;
 pub mod reconstruction;
 pub mod report;
 pub mod scene_source;

@@ -260,10 +260,12 @@ pub struct Summary<'a> {
     /// The map to write (the final result, or the current best of a running search).
     pub assignment: &'a [u16],
     pub similarity: f64,
-    pub epsilon: f64,
+    /// ε of every budget (empty before calibration).
+    pub epsilons: &'a std::collections::BTreeMap<u32, f64>,
     pub used: crate::reconstruction::Consumption,
-    /// Photons of target and calibration renders.
-    pub setup_photons: u64,
+    /// Photons engines ran (all sources): search, target and calibration renders,
+    /// recomputation included.
+    pub photons_simulated: u64,
     pub wall_seconds: f64,
     pub engine: String,
     pub reproducible: bool,
@@ -302,10 +304,16 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         pixel_accuracy: m.map(|m| m.0),
         material_sse: m.map(|m| m.1),
         similarity: s.similarity,
-        epsilon: s.epsilon,
+        epsilon: s
+            .epsilons
+            .get(&s.search.config().photons.level(u32::MAX))
+            .copied()
+            .unwrap_or(f64::NAN),
+        epsilons: s.epsilons.clone(),
+        requests: s.used.requests,
         renders: s.used.renders,
         photons: s.used.photons,
-        photons_simulated: s.used.photons + s.setup_photons,
+        photons_simulated: s.photons_simulated,
         wall_seconds: s.wall_seconds,
         engine: s.engine.clone(),
         seed: s.config.seed,

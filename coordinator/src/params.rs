@@ -1,6 +1,7 @@
 //! The parameters of a reconstruction: `scatterfarm reconstruct`'s flags and a job file's keys
 //! (the same names, dashes as underscores) are one struct, so the two cannot drift apart.
 
+use crate::search::{Photons, Race, Seeding};
 use crate::similarity::Metric;
 use anyhow::{Context, Result};
 use clap::Args;
@@ -22,22 +23,43 @@ pub const DEFAULT_SEED: u64 = 1;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SearchMode {
-    /// The paper's algorithm exactly: every render request its own seed.
+    /// The paper's algorithm exactly: every render request its own seed, every render with
+    /// iterations × photons per iteration photons, the within-ε metric.
     #[default]
     Paper,
-    /// Common random numbers per level and a render cache: the same search, with every render
-    /// of a level on one seed, so repeated assignments are rendered once.
+    /// The faster search: its options' defaults switch to common random numbers per level,
+    /// early step 2, racing, per-level budgets, re-scoring and ties within one standard
+    /// error.
     Fast,
 }
 
-impl SearchMode {
-    /// How the search seeds its renders.
-    pub fn seeding(self) -> crate::search::Seeding {
-        match self {
-            SearchMode::Paper => crate::search::Seeding::PerRequest,
-            SearchMode::Fast => crate::search::Seeding::PerLevel,
-        }
-    }
+/// The faster search's defaults (`--search fast`), each overridable by its own option; the
+/// choices are measured in `scatterfarm bench reconstruct` (see the README).
+pub mod fast {
+    /// The paper's within-ε: the L2 metrics follow render noise at small budgets and move
+    /// pixels the truth does not have.
+    pub const METRIC: crate::similarity::Metric = crate::similarity::Metric::WithinEpsilon;
+    /// Photons per source of each level, as a share of the nominal budget (iterations ×
+    /// photons per iteration), from level 0; the last share holds for finer levels.
+    pub const LEVEL_SHARES: [f64; 1] = [0.1];
+    /// Racing's first stage: this share of the level's photons.
+    pub const RACE_SHARE: f64 = 0.25;
+    /// Racing drops a candidate this many standard errors behind the leader.
+    pub const RACE_Z: f64 = 3.0;
+    /// Re-scoring photons, as a share of the nominal budget.
+    pub const RESCORE_SHARE: f64 = 1.0;
+    /// Scores within this many standard errors of each other tie: a change needs evidence.
+    pub const TIE_Z: f64 = 1.0;
+}
+
+/// The search options resolved from a mode and its overrides.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SearchOptions {
+    pub metric: Metric,
+    pub seeding: Seeding,
+    pub photons: Photons,
+    pub early_step2: bool,
+    pub tie_z: f64,
 }
 
 /// What to reconstruct and how; see `scatterfarm reconstruct --help` for each key.
@@ -81,8 +103,8 @@ pub struct JobParams {
     #[arg(long, default_value_t = DEFAULT_PERCENTILE)]
     pub percentile: f64,
     /// The similarity metric.
-    #[arg(long, value_enum, default_value_t = Metric::WithinEpsilon)]
-    pub metric: Metric,
+    #[arg(long, value_enum, value_name = "METRIC")]
+    pub metric: Option<Metric>,
     /// Search at this grid (a power of two, at most the scene's); default: the scene's grid,
     /// or 16 for a captured target.
     #[arg(long)]
@@ -96,10 +118,40 @@ pub struct JobParams {
     /// The job seed: every random stream derives from it.
     #[arg(long, default_value_t = DEFAULT_SEED)]
     pub seed: u64,
-    /// The search: the paper's exactly, or the faster one (common random numbers per level,
-    /// render cache).
+    /// The search: the paper's exactly, or the faster one. The options below switch one
+    /// improvement on or off in either mode; `fast` changes their defaults (given after each
+    /// as "fast: …").
     #[arg(long, value_enum, default_value_t = SearchMode::Paper)]
     pub search: SearchMode,
+    /// Common random numbers: every render of a level on one seed (fast: true).
+    #[arg(long, value_name = "BOOL")]
+    pub common_random_numbers: Option<bool>,
+    /// Request all M⁰-variants of a permutation (its step-2 renders) at once when it starts,
+    /// so they render in parallel (fast: true).
+    #[arg(long, value_name = "BOOL")]
+    pub early_step2: Option<bool>,
+    /// Photons per source of each level's renders, from level 0, comma-separated; the last
+    /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
+    #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
+    pub level_photons: Option<Vec<u32>>,
+    /// Racing: render every candidate first with this share of the level's photons and
+    /// spend the rest on the contenders; 1 turns it off (paper: 1; fast: 0.25).
+    #[arg(long, value_name = "SHARE")]
+    pub race_share: Option<f64>,
+    /// Racing drops a candidate whose first-stage score is this many standard errors behind
+    /// the leader's (fast: 3).
+    #[arg(long, value_name = "Z")]
+    pub race_z: Option<f64>,
+    /// Re-score a level's distinct finalists (each permutation's result, and the level's
+    /// starting map) on one fresh seed with this many photons per source and keep the best;
+    /// 0 turns it off (paper: 0; fast: iterations × photons per iteration).
+    #[arg(long, value_name = "N")]
+    pub rescore_photons: Option<u32>,
+    /// Scores closer than this many standard errors of their difference tie: a tie inside a
+    /// step goes to the earlier candidate, between the steps to step 2, as in the paper's
+    /// exact ties (paper: 0; fast: 1).
+    #[arg(long, value_name = "Z")]
+    pub tie_z: Option<f64>,
     /// A label for job listings (job files only).
     #[arg(skip)]
     pub name: Option<String>,
@@ -126,12 +178,19 @@ impl Default for JobParams {
             photons_per_iteration: DEFAULT_PHOTONS_PER_ITERATION,
             target_photons: None,
             percentile: DEFAULT_PERCENTILE,
-            metric: Metric::default(),
+            metric: None,
             grid: None,
             positions: None,
             directions: None,
             seed: DEFAULT_SEED,
             search: SearchMode::Paper,
+            common_random_numbers: None,
+            early_step2: None,
+            level_photons: None,
+            race_share: None,
+            race_z: None,
+            rescore_photons: None,
+            tie_z: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,
@@ -160,6 +219,71 @@ impl JobParams {
             path.display()
         );
         Ok(params)
+    }
+
+    /// The search options: the mode's defaults with every explicit option over them. `nominal`
+    /// is iterations × photons per iteration.
+    pub fn search_options(&self, nominal: u32) -> Result<SearchOptions> {
+        let fast = self.search == SearchMode::Fast;
+        let share = |s: f64| ((f64::from(nominal) * s).round() as u32).max(1);
+        let per_level = match &self.level_photons {
+            Some(v) => {
+                anyhow::ensure!(!v.is_empty(), "level photons: give at least one value");
+                anyhow::ensure!(
+                    v.iter().all(|&p| p > 0),
+                    "level photons: every level needs at least one photon per source"
+                );
+                v.clone()
+            }
+            None if fast => fast::LEVEL_SHARES.iter().map(|&s| share(s)).collect(),
+            None => vec![nominal],
+        };
+        let race_share = self
+            .race_share
+            .unwrap_or(if fast { fast::RACE_SHARE } else { 1.0 });
+        anyhow::ensure!(
+            race_share > 0.0 && race_share <= 1.0,
+            "race share must lie in (0, 1], got {race_share}"
+        );
+        let race_z = self.race_z.unwrap_or(fast::RACE_Z);
+        anyhow::ensure!(
+            race_z.is_finite() && race_z >= 0.0,
+            "race z must be a number ≥ 0, got {race_z}"
+        );
+        let rescore = match self.rescore_photons {
+            Some(0) => None,
+            Some(n) => Some(n),
+            None if fast => Some(share(fast::RESCORE_SHARE)),
+            None => None,
+        };
+        let crn = self.common_random_numbers.unwrap_or(fast);
+        let tie_z = self.tie_z.unwrap_or(if fast { fast::TIE_Z } else { 0.0 });
+        anyhow::ensure!(
+            tie_z.is_finite() && tie_z >= 0.0,
+            "tie z must be a number ≥ 0, got {tie_z}"
+        );
+        Ok(SearchOptions {
+            metric: self.metric.unwrap_or(if fast {
+                fast::METRIC
+            } else {
+                Metric::WithinEpsilon
+            }),
+            seeding: if crn {
+                Seeding::PerLevel
+            } else {
+                Seeding::PerRequest
+            },
+            photons: Photons {
+                per_level,
+                race: (race_share < 1.0).then_some(Race {
+                    share: race_share,
+                    z: race_z,
+                }),
+                rescore,
+            },
+            early_step2: self.early_step2.unwrap_or(fast),
+            tie_z,
+        })
     }
 
     /// The job file text of these parameters: only the keys that differ from the defaults, so
@@ -211,7 +335,7 @@ mod tests {
         assert_eq!(p.scene.as_deref(), Some("fig7a"));
         assert_eq!(p.permutations, 3);
         assert_eq!(p.iterations, DEFAULT_ITERATIONS);
-        assert_eq!(p.metric, Metric::L2);
+        assert_eq!(p.metric, Some(Metric::L2));
         let text = p.to_toml().unwrap();
         assert!(
             !text.contains("iterations ="),
@@ -219,6 +343,68 @@ mod tests {
         );
         let back = JobParams::from_toml(&text, Path::new("k.toml")).unwrap();
         assert_eq!(back, p);
+    }
+
+    #[test]
+    fn the_mode_sets_the_defaults_and_options_override_them() {
+        let paper = JobParams::default().search_options(4096).unwrap();
+        assert_eq!(
+            paper,
+            SearchOptions {
+                metric: Metric::WithinEpsilon,
+                seeding: Seeding::PerRequest,
+                photons: Photons::uniform(4096),
+                early_step2: false,
+                tie_z: 0.0,
+            }
+        );
+        let fast = JobParams {
+            search: SearchMode::Fast,
+            ..Default::default()
+        };
+        let o = fast.search_options(4096).unwrap();
+        assert_eq!(o.metric, fast::METRIC);
+        assert_eq!(o.seeding, Seeding::PerLevel);
+        assert!(o.early_step2);
+        assert!(o.photons.race.is_some());
+        // Each improvement alone, in the paper's search.
+        let crn_only = JobParams {
+            common_random_numbers: Some(true),
+            ..Default::default()
+        };
+        let o = crn_only.search_options(4096).unwrap();
+        assert_eq!(
+            (o.seeding, o.photons.clone()),
+            (Seeding::PerLevel, Photons::uniform(4096))
+        );
+        let off = JobParams {
+            search: SearchMode::Fast,
+            race_share: Some(1.0),
+            rescore_photons: Some(0),
+            level_photons: Some(vec![100, 50]),
+            ..Default::default()
+        };
+        let o = off.search_options(4096).unwrap();
+        assert_eq!(o.photons.race, None);
+        assert_eq!(o.photons.rescore, None);
+        assert_eq!(o.photons.per_level, vec![100, 50]);
+        for bad in [
+            JobParams {
+                race_share: Some(0.0),
+                ..Default::default()
+            },
+            JobParams {
+                level_photons: Some(vec![10, 0]),
+                ..Default::default()
+            },
+            JobParams {
+                race_z: Some(-1.0),
+                race_share: Some(0.5),
+                ..Default::default()
+            },
+        ] {
+            assert!(bad.search_options(4096).is_err(), "{bad:?}");
+        }
     }
 
     #[test]

@@ -15,6 +15,7 @@ use crate::similarity::{self, Metric, Target};
 use anyhow::{bail, ensure, Context, Result};
 use scatterfarm_worker::material::builtin_material;
 use scatterfarm_worker::{CountMatrix, Geometry, Material, MaterialTable, RenderItem, Scene};
+use std::collections::BTreeMap;
 
 fn parse_range(text: &str, key: &str) -> Result<(f64, f64)> {
     let (lo, hi) = text
@@ -89,8 +90,9 @@ pub enum SetupKind {
     Target,
     /// The calibration material as the target is made (stream `calibration-target`).
     CalibrationTarget,
-    /// The calibration material as the search renders (stream `calibration-search`).
-    CalibrationSearch,
+    /// The calibration material as the search renders (stream `calibration-search`), with
+    /// one of the photon budgets the search renders with.
+    CalibrationSearch { photons: u32 },
 }
 
 /// One render that must be done before the search starts.
@@ -109,7 +111,8 @@ pub struct SetupRender {
 pub struct SetupCounts {
     pub target: Option<CountMatrix>,
     pub calibration_target: Option<CountMatrix>,
-    pub calibration_search: Option<CountMatrix>,
+    /// By photons per source.
+    pub calibration_search: BTreeMap<u32, CountMatrix>,
 }
 
 impl SetupCounts {
@@ -118,7 +121,20 @@ impl SetupCounts {
         match kind {
             SetupKind::Target => self.target = Some(counts),
             SetupKind::CalibrationTarget => self.calibration_target = Some(counts),
-            SetupKind::CalibrationSearch => self.calibration_search = Some(counts),
+            SetupKind::CalibrationSearch { photons } => {
+                self.calibration_search.insert(photons, counts);
+            }
+        }
+    }
+
+    /// Whether the counts of `kind` are here.
+    pub fn has(&self, kind: SetupKind) -> bool {
+        match kind {
+            SetupKind::Target => self.target.is_some(),
+            SetupKind::CalibrationTarget => self.calibration_target.is_some(),
+            SetupKind::CalibrationSearch { photons } => {
+                self.calibration_search.contains_key(&photons)
+            }
         }
     }
 }
@@ -149,6 +165,7 @@ pub struct Plan {
     /// A capture of the calibration material, for captured targets.
     pub calibration_reference: Option<Vec<f32>>,
     pub target_photons: u32,
+    /// The nominal budget: iterations × photons per iteration (the paper's every render).
     pub budget: Budget,
     pub metric: Metric,
     pub percentile: f64,
@@ -163,6 +180,7 @@ impl Plan {
             photons_per_iteration: params.photons_per_iteration,
         };
         let search_photons = budget.photons_per_source()?;
+        let options = params.search_options(search_photons)?;
         ensure!(params.permutations > 0, "permutations must be at least 1");
         ensure!(
             (0.0..=100.0).contains(&params.percentile),
@@ -328,7 +346,10 @@ impl Plan {
                 permutations: params.permutations,
                 seed: params.seed,
                 candidates: candidates.clone(),
-                seeding: params.search.seeding(),
+                seeding: options.seeding,
+                photons: options.photons.clone(),
+                early_step2: options.early_step2,
+                tie_z: options.tie_z,
             },
             table,
         )?;
@@ -348,7 +369,14 @@ impl Plan {
             photons_per_iteration: params.photons_per_iteration,
             target_photons,
             percentile: params.percentile,
-            metric: params.metric,
+            metric: options.metric,
+            search: params.search,
+            common_random_numbers: options.seeding == crate::search::Seeding::PerLevel,
+            early_step2: options.early_step2,
+            tie_z: options.tie_z,
+            level_photons: options.photons.per_level.clone(),
+            race: options.photons.race,
+            rescore_photons: options.photons.rescore,
             grid,
             size_mm: geometry.size_mm,
             positions: geometry.positions,
@@ -366,7 +394,7 @@ impl Plan {
             calibration_reference,
             target_photons,
             budget,
-            metric: params.metric,
+            metric: options.metric,
             percentile: params.percentile,
             seed: params.seed,
         })
@@ -404,16 +432,20 @@ impl Plan {
                 photons: self.target_photons,
             });
         }
-        renders.push(SetupRender {
-            kind: SetupKind::CalibrationSearch,
-            geometry: homogeneous,
-            table: vec![self.calibration_material],
-            item: RenderItem {
-                assignment: vec![0],
-                seed: seeds::derive(self.seed, Stream::CalibrationSearch),
-            },
-            photons: self.budget.photons_per_source()?,
-        });
+        // One per budget the search renders with, all on the one stream (a smaller budget's
+        // render is the first photons of a larger one's).
+        for photons in self.search.budgets() {
+            renders.push(SetupRender {
+                kind: SetupKind::CalibrationSearch { photons },
+                geometry: homogeneous,
+                table: vec![self.calibration_material],
+                item: RenderItem {
+                    assignment: vec![0],
+                    seed: seeds::derive(self.seed, Stream::CalibrationSearch),
+                },
+                photons,
+            });
+        }
         Ok(renders)
     }
 
@@ -444,20 +476,31 @@ impl Plan {
                 &rendered_reference
             }
         };
-        let search_photons = self.budget.photons_per_source()?;
-        let c = counts
-            .calibration_search
-            .as_ref()
-            .context("the calibration-search render is missing")?;
-        let search = similarity::fractions(c, u64::from(search_photons));
-        let epsilon = similarity::epsilon(reference, &search, self.percentile)?;
-        Ok(Scoring {
+        let mut epsilons = BTreeMap::new();
+        for photons in self.search.budgets() {
+            let c = counts.calibration_search.get(&photons).with_context(|| {
+                format!("the calibration-search render at {photons} photons is missing")
+            })?;
+            let search = similarity::fractions(c, u64::from(photons));
+            epsilons.insert(
+                photons,
+                similarity::epsilon(reference, &search, self.percentile)?,
+            );
+        }
+        Ok(self.scoring(target, epsilons))
+    }
+
+    /// What the search scores against, from the target and the ε of every budget.
+    pub fn scoring(&self, target: Target, epsilons: BTreeMap<u32, f64>) -> Scoring {
+        Scoring {
             geometry: self.search_geometry,
             target,
             metric: self.metric,
-            epsilon,
-            budget: self.budget,
-        })
+            epsilons,
+            with_errors: self.search.config().photons.race.is_some()
+                || self.search.config().tie_z > 0.0,
+            chunk: self.budget.photons_per_iteration.max(1),
+        }
     }
 
     /// Photons (all sources) the setup renders launch.

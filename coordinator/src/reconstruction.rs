@@ -1,19 +1,21 @@
 //! Running a reconstruction in one process: rendering a [`Plan`]'s target and calibration, and
 //! driving the [`Search`] state machine against an [`Engine`].
 //!
-//! The renders of a search step are rendered as one batch (all candidates at once) over the
-//! search's photon budget, in chunks of one iteration's photons, then scored. A request whose
-//! render identity was already scored (the same assignment and seed: common random numbers make
-//! these frequent) takes the cached score instead of a new render.
+//! The renders of a search step are rendered as one batch (all candidates at once), each with
+//! the photons its request names, in chunks of one iteration's photons, then scored. A request
+//! whose render identity (assignment, seed, photons) was already scored takes the cached score
+//! instead of a new render (common random numbers make these frequent), and a racing
+//! contender's full render extends its first-stage render instead of starting again.
 
-use crate::engines::render_in_chunks;
+use crate::engines::{render_in_chunks, render_range};
 use crate::plan::{Plan, SetupCounts};
-use crate::search::Search;
+use crate::prefixes::{Prefixes, DEFAULT_BYTES};
+use crate::search::{Score, Search};
 use crate::similarity::{self, Metric, Target};
 use anyhow::{Context, Result};
 use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// The photon budget of a search (`model.md`, "Budget").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -39,8 +41,35 @@ pub struct Scoring {
     pub geometry: Geometry,
     pub target: Target,
     pub metric: Metric,
-    pub epsilon: f64,
-    pub budget: Budget,
+    /// ε of every photons-per-source budget the search renders with.
+    pub epsilons: BTreeMap<u32, f64>,
+    /// Whether scores carry their standard errors (racing needs them; they cost a pass).
+    pub with_errors: bool,
+    /// Photons per source per chunk of an in-process render (one iteration's).
+    pub chunk: u32,
+}
+
+impl Scoring {
+    /// ε of renders with `photons` per source.
+    pub fn epsilon(&self, photons: u32) -> Result<f64> {
+        self.epsilons
+            .get(&photons)
+            .copied()
+            .with_context(|| format!("no ε was calibrated for {photons} photons per source"))
+    }
+
+    /// The score of a render of `photons` per source.
+    pub fn score(&self, counts: &CountMatrix, photons: u32) -> Result<Score> {
+        let epsilon = self.epsilon(photons)?;
+        let n = u64::from(photons);
+        let value = similarity::score(self.metric, &self.target, counts, n, epsilon)?;
+        let std_error = if self.with_errors {
+            similarity::std_error(self.metric, &self.target, counts, n, epsilon)?
+        } else {
+            0.0
+        };
+        Ok(Score { value, std_error })
+    }
 }
 
 /// What the search consumed.
@@ -51,9 +80,13 @@ pub struct Consumption {
     pub requests: u64,
     /// Distinct renders the search needed: requests whose identity had not been rendered.
     pub renders: u64,
-    /// Photons launched by those renders, over all sources.
+    /// Photons those renders needed, over all sources: a racing contender's full render
+    /// counts only the photons beyond its first stage.
     pub photons: u64,
     pub scatter_events: u64,
+    /// Photons rendered again because a first-stage prefix had been forgotten (all sources).
+    #[serde(default)]
+    pub recomputed: u64,
 }
 
 /// Renders one homogeneous or heterogeneous assignment in full and returns its counts.
@@ -96,11 +129,12 @@ pub fn prepare(plan: &Plan, engine: &dyn Engine) -> Result<Scoring> {
         counts.set(r.kind, c);
     }
     let scoring = plan.finish_setup(&counts)?;
-    tracing::info!(
-        "ε = {:.6} ({}th percentile)",
-        scoring.epsilon,
-        plan.percentile
-    );
+    for (photons, epsilon) in &scoring.epsilons {
+        tracing::info!(
+            "ε = {epsilon:.6} at {photons} photons per source ({}th percentile)",
+            plan.percentile
+        );
+    }
     Ok(scoring)
 }
 
@@ -113,72 +147,88 @@ pub fn drive(
     on_step: &mut dyn FnMut(&Search, &Consumption),
     on_photons: &mut dyn FnMut(u64),
 ) -> Result<Consumption> {
-    let photons = scoring.budget.photons_per_source()?;
     let sources = scoring.geometry.sources() as u64;
     let mut used = Consumption::default();
-    // Scores by (assignment, seed): within one search, engine, geometry, photons and the
+    // Scores by (assignment, seed, photons): within one search level, engine, geometry and the
     // material table's entries are fixed, so this is the render's identity. Seeds never repeat
-    // across levels, so the cache is cleared at each new level.
-    let mut cache: HashMap<(Vec<u16>, u64), f64> = HashMap::new();
+    // across levels, so the caches are cleared at each new level.
+    let mut cache: HashMap<(Vec<u16>, u64, u32), Score> = HashMap::new();
+    // Photons per source already consumed of each stream (for racing's accounting).
+    let mut consumed: HashMap<(Vec<u16>, u64), u32> = HashMap::new();
+    let mut prefixes = Prefixes::new(DEFAULT_BYTES);
     let mut cache_level = search.progress().level;
     while !search.is_finished() {
         let level = search.progress().level;
         if level != cache_level {
             cache.clear();
+            consumed.clear();
+            prefixes.clear();
             cache_level = level;
         }
-        let mut missing: Vec<RenderItem> = Vec::new();
+        let full = search.config().photons.level(level);
+        // The missing renders, grouped by the photon range they need.
+        let mut missing: BTreeMap<(u32, u32), Vec<RenderItem>> = BTreeMap::new();
         for r in search.pending() {
+            if cache.contains_key(&(r.assignment.clone(), r.seed, r.photons)) {
+                continue;
+            }
             let key = (r.assignment.clone(), r.seed);
-            if !cache.contains_key(&key)
-                && !missing
-                    .iter()
-                    .any(|m| m.seed == r.seed && m.assignment == r.assignment)
+            let start = prefixes.get(&key, r.photons).map_or(0, |(p, _)| p);
+            let items = missing.entry((start, r.photons)).or_default();
+            if !items
+                .iter()
+                .any(|m| m.seed == r.seed && m.assignment == r.assignment)
             {
-                missing.push(RenderItem {
+                items.push(RenderItem {
                     assignment: r.assignment.clone(),
                     seed: r.seed,
                 });
             }
         }
-        if !missing.is_empty() {
-            let table = search.materials();
-            let n_items = missing.len() as u64;
-            let rendered = render_in_chunks(
+        let table = search.materials();
+        for ((start, photons), items) in missing {
+            let n_items = items.len() as u64;
+            let rendered = render_range(
                 engine,
                 scoring.geometry,
                 &table,
-                &missing,
-                photons,
-                scoring.budget.photons_per_iteration.max(1),
+                &items,
+                start..photons,
+                scoring.chunk,
                 &mut |n| on_photons(u64::from(n) * n_items * sources),
             )?;
-            for (item, c) in missing.into_iter().zip(&rendered.counts) {
-                let s = similarity::score(
-                    scoring.metric,
-                    &scoring.target,
-                    c,
-                    u64::from(photons),
-                    scoring.epsilon,
-                )?;
-                cache.insert((item.assignment, item.seed), s);
-            }
-            used.renders += n_items;
-            used.photons += n_items * sources * u64::from(photons);
             used.scatter_events += rendered.scatter_events;
+            for (item, mut counts) in items.into_iter().zip(rendered.counts) {
+                let key = (item.assignment, item.seed);
+                if let Some((_, prefix)) = prefixes.get(&key, photons) {
+                    counts.add(prefix)?;
+                }
+                cache.insert(
+                    (key.0.clone(), key.1, photons),
+                    scoring.score(&counts, photons)?,
+                );
+                let before = consumed.get(&key).copied().unwrap_or(0).min(photons);
+                used.recomputed += u64::from(before - before.min(start)) * sources;
+                used.renders += 1;
+                used.photons += u64::from(photons - before) * sources;
+                consumed.insert(key.clone(), before.max(photons));
+                if photons < full {
+                    prefixes.keep(key, photons, counts);
+                }
+            }
         }
         let scores = search
             .pending()
             .iter()
             .map(|r| {
                 cache
-                    .get(&(r.assignment.clone(), r.seed))
+                    .get(&(r.assignment.clone(), r.seed, r.photons))
                     .copied()
                     .context("a request's score is missing")
             })
-            .collect::<Result<Vec<f64>>>()?;
+            .collect::<Result<Vec<Score>>>()?;
         used.requests += scores.len() as u64;
-        search.submit(&scores)?;
+        search.submit_scores(&scores)?;
         on_step(search, &used);
     }
     Ok(used)

@@ -1,6 +1,7 @@
 //! `report.json` of a reconstruction: the measures, what it consumed, and its configuration.
 
-use crate::search::Bounds;
+use crate::params::SearchMode;
+use crate::search::{Bounds, Race};
 use crate::similarity::Metric;
 use serde::{Deserialize, Serialize};
 
@@ -20,6 +21,14 @@ pub struct Configuration {
     pub target_photons: u32,
     pub percentile: f64,
     pub metric: Metric,
+    /// The search mode and the options it resolved to.
+    pub search: SearchMode,
+    pub common_random_numbers: bool,
+    pub early_step2: bool,
+    pub tie_z: f64,
+    pub level_photons: Vec<u32>,
+    pub race: Option<Race>,
+    pub rescore_photons: Option<u32>,
     pub grid: u32,
     pub size_mm: f64,
     pub positions: u32,
@@ -42,7 +51,12 @@ pub struct Report {
     pub pixel_accuracy: Option<f64>,
     pub material_sse: Option<f64>,
     pub similarity: f64,
+    /// ε of the finest level's budget.
     pub epsilon: f64,
+    /// ε of every photons-per-source budget the search scored renders of.
+    pub epsilons: std::collections::BTreeMap<u32, f64>,
+    /// Render requests of the search (answered by a render or by the cache).
+    pub requests: u64,
     /// Search renders and the photons they launched (all sources).
     pub renders: u64,
     pub photons: u64,

@@ -21,6 +21,8 @@ pub enum Stream {
     Render(u64),
     /// Every render of search level `ℓ` under common random numbers (`--search fast`).
     LevelRender(u32),
+    /// The re-scoring of level `ℓ`'s finalists (a seed no search render of the level uses).
+    Rescore(u32),
 }
 
 impl Stream {
@@ -32,6 +34,7 @@ impl Stream {
             Stream::Search => ("search", 0),
             Stream::Render(n) => ("render", *n),
             Stream::LevelRender(l) => ("render-level", u64::from(*l)),
+            Stream::Rescore(l) => ("rescore", u64::from(*l)),
         }
     }
 }
@@ -66,6 +69,7 @@ mod tests {
             derive(1, Stream::Render(1)),
             derive(1, Stream::LevelRender(0)),
             derive(1, Stream::LevelRender(1)),
+            derive(1, Stream::Rescore(1)),
             derive(2, Stream::Target),
         ];
         for (i, a) in all.iter().enumerate() {

@@ -39,10 +39,10 @@ pub struct ReconstructBenchArgs {
     /// Also write the JSON here.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Keep each scene's outputs (report, maps) under this folder.
+    /// Keep each scene's outputs (report, maps) under this folder (SEED/SCENE).
     #[arg(long)]
     pub keep: Option<PathBuf>,
-    /// Scenes to run (default: fig7a … fig7l).
+    /// Scenes to run (default: fig7a … fig7l and phantom16).
     #[arg(long, value_delimiter = ',')]
     pub scenes: Option<Vec<String>>,
     #[arg(long, default_value_t = 16)]
@@ -57,10 +57,18 @@ pub struct ReconstructBenchArgs {
     pub iterations: u32,
     #[arg(long, default_value_t = 512)]
     pub photons_per_iteration: u32,
-    #[arg(long, value_enum, default_value_t = crate::similarity::Metric::WithinEpsilon)]
-    pub metric: crate::similarity::Metric,
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
+    /// The metric (default: the search mode's).
+    #[arg(long, value_enum)]
+    pub metric: Option<crate::similarity::Metric>,
+    /// Job seeds, comma-separated: every scene runs once per seed (pixel accuracy moves in
+    /// whole pixels, so compare searches over several).
+    #[arg(
+        long = "seeds",
+        alias = "seed",
+        value_delimiter = ',',
+        default_value = "1"
+    )]
+    pub seeds: Vec<u64>,
     /// Photons per source of the synthesized targets (default: the search's); give the same
     /// value when comparing budgets, so every search sees the same targets.
     #[arg(long)]
@@ -68,20 +76,113 @@ pub struct ReconstructBenchArgs {
     /// The search: the paper's, or the fast one.
     #[arg(long, value_enum, default_value_t = crate::params::SearchMode::Paper)]
     pub search: crate::params::SearchMode,
+    /// Any other job-file key, as KEY=VALUE in TOML (e.g. race_share=0.5,
+    /// common_random_numbers=false, level_photons=[400,200]); repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
     #[command(flatten)]
     pub engine: EngineArgs,
+}
+
+impl ReconstructBenchArgs {
+    /// The job parameters of `scene` under `seed`: the bench's flags, then every `--set`.
+    fn params(&self, scene: &str, seed: u64) -> Result<crate::params::JobParams> {
+        let mut keys = toml::Table::new();
+        let mut put = |k: &str, v: toml::Value| {
+            keys.insert(k.to_string(), v);
+        };
+        put("scene", scene.into());
+        // The paper searched 7i with all six materials.
+        if scene == "fig7i" {
+            let all: Vec<toml::Value> = scatterfarm_worker::material::BUILTIN_MATERIALS
+                .iter()
+                .map(|(n, _)| toml::Value::from(*n))
+                .collect();
+            put("dictionary", toml::Value::Array(all));
+        }
+        put("permutations", i64::from(self.permutations).into());
+        put("iterations", i64::from(self.iterations).into());
+        put(
+            "photons_per_iteration",
+            i64::from(self.photons_per_iteration).into(),
+        );
+        put("grid", i64::from(self.grid).into());
+        put("positions", i64::from(self.positions).into());
+        put("directions", i64::from(self.directions).into());
+        put(
+            "seed",
+            i64::try_from(seed).context("--seeds: too large")?.into(),
+        );
+        put("search", toml::Value::try_from(self.search)?);
+        if let Some(m) = self.metric {
+            put("metric", toml::Value::try_from(m)?);
+        }
+        if let Some(t) = self.target_photons {
+            put("target_photons", i64::from(t).into());
+        }
+        for pair in &self.set {
+            let (k, v) = pair
+                .split_once('=')
+                .with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
+            let (k, v) = (k.trim(), v.trim());
+            // A bare word is a string (`search=fast`).
+            let value = toml::from_str::<toml::Table>(&format!("v = {v}"))
+                .ok()
+                .and_then(|mut t| t.remove("v"))
+                .unwrap_or_else(|| toml::Value::from(v));
+            put(k, value);
+        }
+        let text = toml::to_string(&keys)?;
+        crate::params::JobParams::from_toml(&text, std::path::Path::new("--set"))
+    }
 }
 
 /// One scene's row of the quality table.
 #[derive(Debug, Clone, Serialize)]
 pub struct QualityRow {
     pub scene: String,
+    pub seed: u64,
     pub pixel_accuracy: Option<f64>,
     pub material_sse: Option<f64>,
     pub similarity: f64,
+    pub requests: u64,
     pub renders: u64,
+    /// Photons the search consumed (all sources).
     pub photons: u64,
+    /// Photons engines ran: search, target and calibration renders.
+    pub photons_simulated: u64,
     pub wall_seconds: f64,
+}
+
+/// A scene's rows averaged over the seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct SceneSummary {
+    pub scene: String,
+    pub seeds: usize,
+    pub mean_pixel_accuracy: Option<f64>,
+    pub min_pixel_accuracy: Option<f64>,
+    pub mean_material_sse: Option<f64>,
+    pub photons: u64,
+    pub photons_simulated: u64,
+    pub renders: u64,
+    pub wall_seconds: f64,
+}
+
+fn summarize(scene: &str, rows: &[&QualityRow]) -> SceneSummary {
+    let acc: Vec<f64> = rows.iter().filter_map(|r| r.pixel_accuracy).collect();
+    let sse: Vec<f64> = rows.iter().filter_map(|r| r.material_sse).collect();
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    SceneSummary {
+        scene: scene.to_string(),
+        seeds: rows.len(),
+        mean_pixel_accuracy: mean(&acc),
+        min_pixel_accuracy: acc.iter().copied().reduce(f64::min),
+        mean_material_sse: mean(&sse),
+        photons: rows.iter().map(|r| r.photons).sum(),
+        photons_simulated: rows.iter().map(|r| r.photons_simulated).sum(),
+        renders: rows.iter().map(|r| r.renders).sum(),
+        wall_seconds: rows.iter().map(|r| r.wall_seconds).sum(),
+    }
 }
 
 /// Engines `bench engine` can measure.
@@ -173,77 +274,89 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     let scenes = args.scenes.clone().unwrap_or_else(|| {
         (b'a'..=b'l')
             .map(|c| format!("fig7{}", c as char))
+            .chain(["phantom16".to_string()])
             .collect()
     });
+    anyhow::ensure!(!args.seeds.is_empty(), "--seeds: give at least one seed");
+    // Every parameter set is checked before the first (long) run.
+    for scene in &scenes {
+        args.params(scene, args.seeds[0])?;
+    }
     let engine = args.engine.open()?;
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
     let mut rows = Vec::new();
     eprintln!(
-        "{:<8} {:>9} {:>9} {:>10} {:>8} {:>14} {:>9}",
-        "scene", "accuracy", "SSE", "similarity", "renders", "photons", "seconds"
+        "{:<10} {:>5} {:>9} {:>9} {:>10} {:>8} {:>14} {:>9}",
+        "scene", "seed", "accuracy", "SSE", "similarity", "renders", "photons", "seconds"
     );
-    for scene in &scenes {
-        let out = match &args.keep {
-            Some(dir) => dir.join(scene),
-            None => scratch.path().join(scene),
-        };
-        // The paper searched 7i with all six materials.
-        let dictionary = (scene == "fig7i").then(|| {
-            scatterfarm_worker::material::BUILTIN_MATERIALS
-                .iter()
-                .map(|(n, _)| n.to_string())
-                .collect()
-        });
-        let params = crate::params::JobParams {
-            scene: Some(scene.clone()),
-            dictionary,
-            permutations: args.permutations,
-            iterations: args.iterations,
-            photons_per_iteration: args.photons_per_iteration,
-            metric: args.metric,
-            grid: Some(args.grid),
-            positions: Some(args.positions),
-            directions: Some(args.directions),
-            seed: args.seed,
-            search: args.search,
-            target_photons: args.target_photons,
-            ..Default::default()
-        };
-        let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)?;
-        let row = QualityRow {
-            scene: scene.clone(),
-            pixel_accuracy: report.pixel_accuracy,
-            material_sse: report.material_sse,
-            similarity: report.similarity,
-            renders: report.renders,
-            photons: report.photons,
-            wall_seconds: report.wall_seconds,
-        };
-        eprintln!(
-            "{:<8} {:>8.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1}",
-            row.scene,
-            row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
-            row.material_sse.unwrap_or(f64::NAN),
-            row.similarity,
-            row.renders,
-            row.photons,
-            row.wall_seconds
-        );
-        rows.push(row);
+    let mut config = None;
+    for &seed in &args.seeds {
+        for scene in &scenes {
+            let out = args
+                .keep
+                .as_deref()
+                .unwrap_or(scratch.path())
+                .join(seed.to_string())
+                .join(scene);
+            let params = args.params(scene, seed)?;
+            let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)
+                .with_context(|| format!("{scene}, seed {seed}"))?;
+            let row = QualityRow {
+                scene: scene.clone(),
+                seed,
+                pixel_accuracy: report.pixel_accuracy,
+                material_sse: report.material_sse,
+                similarity: report.similarity,
+                requests: report.requests,
+                renders: report.renders,
+                photons: report.photons,
+                photons_simulated: report.photons_simulated,
+                wall_seconds: report.wall_seconds,
+            };
+            eprintln!(
+                "{:<10} {:>5} {:>8.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1}",
+                row.scene,
+                seed,
+                row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+                row.material_sse.unwrap_or(f64::NAN),
+                row.similarity,
+                row.renders,
+                row.photons,
+                row.wall_seconds
+            );
+            config.get_or_insert(report.configuration);
+            rows.push(row);
+        }
     }
+    let summaries: Vec<SceneSummary> = scenes
+        .iter()
+        .map(|scene| {
+            let of: Vec<&QualityRow> = rows.iter().filter(|r| &r.scene == scene).collect();
+            summarize(scene, &of)
+        })
+        .collect();
+    let all: Vec<&QualityRow> = rows.iter().collect();
+    let total = summarize("total", &all);
+    eprintln!(
+        "mean pixel accuracy {:.1} % over {} runs; {} photons consumed, {} simulated",
+        total.mean_pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+        rows.len(),
+        total.photons,
+        total.photons_simulated
+    );
     let json = serde_json::json!({
         "engine": engine.fingerprint().to_string(),
         "geometry": { "grid": args.grid, "positions": args.positions, "directions": args.directions },
         "permutations": args.permutations,
         "iterations": args.iterations,
         "photons_per_iteration": args.photons_per_iteration,
-        "metric": args.metric,
         "search": args.search,
-        "seed": args.seed,
-        "scenes": rows,
-        "total_photons": rows.iter().map(|r| r.photons).sum::<u64>(),
-        "total_wall_seconds": rows.iter().map(|r| r.wall_seconds).sum::<f64>(),
-        "mean_pixel_accuracy": rows.iter().filter_map(|r| r.pixel_accuracy).sum::<f64>() / rows.len().max(1) as f64,
+        "set": args.set,
+        "seeds": args.seeds,
+        "configuration": config,
+        "runs": rows,
+        "scenes": summaries,
+        "total": total,
     });
     emit(&json, args.out.as_deref())
 }

@@ -13,10 +13,11 @@ use super::work::{GroupItem, Purpose, RenderGroup};
 use crate::inputs::Inputs;
 use crate::outcome::{self, Summary};
 use crate::params::JobParams;
-use crate::plan::{Plan, SetupCounts, SetupKind, TargetSource};
+use crate::plan::{Plan, SetupCounts, TargetSource};
+use crate::prefixes::{Prefixes, DEFAULT_BYTES};
 use crate::reconstruction::{Consumption, Scoring};
-use crate::search::Search;
-use crate::similarity::{self, Target};
+use crate::search::{Score, Search};
+use crate::similarity::Target;
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
@@ -51,7 +52,12 @@ pub struct Progress {
     pub phase: Phase,
     /// The engine fingerprint the job is pinned to ([`ANY_ENGINE`] when it opted out).
     pub pinned: Option<String>,
+    /// ε of the finest level's budget (for listings; `epsilons` holds every budget's).
     pub epsilon: Option<f64>,
+    /// ε by photons per source (empty in progress of older releases: their one budget's ε
+    /// is `epsilon`).
+    #[serde(default)]
+    pub epsilons: BTreeMap<u32, f64>,
     pub search: Search,
     /// What the search consumed (the same for interrupted and uninterrupted runs).
     pub used: Consumption,
@@ -70,7 +76,11 @@ pub struct Job {
     scoring: Option<Scoring>,
     /// Scores of completed search renders, by identity, with the index of the first request
     /// of the step they were rendered for (also in the store).
-    scores: HashMap<[u8; 32], (f64, u64)>,
+    scores: HashMap<[u8; 32], (Score, u64)>,
+    /// Racing's first-stage counts of the current level, which contenders' groups start from
+    /// (memory only: after a restart a contender renders from photon 0, to the same counts).
+    prefixes: Prefixes,
+    prefix_level: u32,
     setup: SetupCounts,
     /// The groups being rendered now.
     pub groups: Vec<RenderGroup>,
@@ -122,6 +132,7 @@ impl Job {
             phase: Phase::Preparing,
             pinned,
             epsilon: None,
+            epsilons: BTreeMap::new(),
             search: plan.search.clone(),
             used: Consumption::default(),
             photons_simulated: 0,
@@ -160,16 +171,24 @@ impl Job {
             inputs.files.insert(name.clone(), bytes);
         }
         let plan = Plan::resolve(&record.params, &inputs).with_context(|| format!("job {id}"))?;
-        let progress: Progress = match store.progress(&id)? {
+        let mut progress: Progress = match store.progress(&id)? {
             Some(bytes) => serde_json::from_slice(&bytes).map_err(|e| StoreError::Damaged {
                 what: "job progress",
                 detail: e.to_string(),
             })?,
             None => anyhow::bail!("job {id}: its progress is missing"),
         };
-        let scoring = match (&progress.phase, progress.epsilon) {
-            (Phase::Preparing, _) | (_, None) => None,
-            (_, Some(epsilon)) => {
+        progress.search.upgrade(plan.search.config());
+        if progress.epsilons.is_empty() {
+            if let Some(e) = progress.epsilon {
+                progress
+                    .epsilons
+                    .insert(plan.budget.photons_per_source()?, e);
+            }
+        }
+        let scoring = match (&progress.phase, progress.epsilons.is_empty()) {
+            (Phase::Preparing, _) | (_, true) => None,
+            (_, false) => {
                 let target = match &plan.target {
                     TargetSource::Captured(t) => t.clone(),
                     TargetSource::Synthesized { photons } => Target {
@@ -181,13 +200,7 @@ impl Job {
                         photons_per_source: u64::from(*photons),
                     },
                 };
-                Some(Scoring {
-                    geometry: plan.search_geometry,
-                    target,
-                    metric: plan.metric,
-                    epsilon,
-                    budget: plan.budget,
-                })
+                Some(plan.scoring(target, progress.epsilons.clone()))
             }
         };
         let scores = store.scores(&id)?.into_iter().collect();
@@ -199,7 +212,7 @@ impl Job {
         record: JobRecord,
         plan: Plan,
         progress: Progress,
-        scores: HashMap<[u8; 32], (f64, u64)>,
+        scores: HashMap<[u8; 32], (Score, u64)>,
         scoring: Option<Scoring>,
     ) -> Job {
         let renders = progress.search.progress().renders_done;
@@ -210,6 +223,8 @@ impl Job {
             progress,
             scoring,
             scores,
+            prefixes: Prefixes::new(DEFAULT_BYTES),
+            prefix_level: 0,
             setup: SetupCounts::default(),
             groups: Vec::new(),
             session_started: Instant::now(),
@@ -300,12 +315,7 @@ impl Job {
             .context("a job is planned before it is pinned")?;
         if self.progress.phase == Phase::Preparing {
             for r in self.plan.setup_renders()? {
-                let done = match r.kind {
-                    SetupKind::Target => self.setup.target.is_some(),
-                    SetupKind::CalibrationTarget => self.setup.calibration_target.is_some(),
-                    SetupKind::CalibrationSearch => self.setup.calibration_search.is_some(),
-                };
-                if done {
+                if self.setup.has(r.kind) {
                     continue;
                 }
                 let id = identity(
@@ -334,69 +344,116 @@ impl Job {
                 return Ok(());
             }
         }
-        let photons = self.plan.budget.photons_per_source()?;
         let geometry = self.plan.search_geometry;
         let sources = geometry.sources() as u64;
         loop {
             if self.progress.search.is_finished() {
                 return self.finish(store);
             }
+            let level = self.progress.search.progress().level;
+            if level != self.prefix_level {
+                self.prefixes.clear();
+                self.prefix_level = level;
+            }
             let table = self.progress.search.materials();
-            let pending: Vec<GroupItem> = self
+            let pending: Vec<(GroupItem, u32)> = self
                 .progress
                 .search
                 .pending()
                 .iter()
-                .map(|r| GroupItem {
-                    identity: identity(
-                        &r.assignment,
-                        &table,
-                        geometry,
-                        r.seed,
-                        photons,
-                        &fingerprint,
-                    ),
-                    item: scatterfarm_worker::RenderItem {
-                        assignment: r.assignment.clone(),
-                        seed: r.seed,
-                    },
+                .map(|r| {
+                    let item = GroupItem {
+                        identity: identity(
+                            &r.assignment,
+                            &table,
+                            geometry,
+                            r.seed,
+                            r.photons,
+                            &fingerprint,
+                        ),
+                        item: scatterfarm_worker::RenderItem {
+                            assignment: r.assignment.clone(),
+                            seed: r.seed,
+                        },
+                    };
+                    (item, r.photons)
                 })
                 .collect();
-            let mut missing: Vec<GroupItem> = Vec::new();
-            for p in &pending {
-                if !self.scores.contains_key(&p.identity)
-                    && !missing.iter().any(|m| m.identity == p.identity)
-                {
-                    missing.push(p.clone());
+            // The unscored renders, grouped by the photon range they need.
+            let mut missing: BTreeMap<(u32, u32), Vec<GroupItem>> = BTreeMap::new();
+            for (p, photons) in &pending {
+                if self.scores.contains_key(&p.identity) {
+                    continue;
+                }
+                let key = (p.item.assignment.clone(), p.item.seed);
+                let start = self.prefixes.get(&key, *photons).map_or(0, |(s, _)| s);
+                let items = missing.entry((start, *photons)).or_default();
+                if !items.iter().any(|m| m.identity == p.identity) {
+                    items.push(p.clone());
                 }
             }
             if !missing.is_empty() {
-                self.groups.push(RenderGroup::new(
-                    new_group_id(),
-                    Purpose::Search,
-                    geometry,
-                    table,
-                    missing,
-                    photons,
-                ));
+                for ((start, photons), items) in missing {
+                    let sums: Vec<_> = items
+                        .iter()
+                        .filter_map(|i| {
+                            let key = (i.item.assignment.clone(), i.item.seed);
+                            self.prefixes.get(&key, photons).map(|(_, c)| c.clone())
+                        })
+                        .collect();
+                    let group = RenderGroup::new(
+                        new_group_id(),
+                        Purpose::Search,
+                        geometry,
+                        table.clone(),
+                        items,
+                        photons,
+                    );
+                    self.groups.push(group.starting_from(start, sums));
+                }
                 return Ok(());
             }
-            let scores: Vec<f64> = pending.iter().map(|p| self.scores[&p.identity].0).collect();
-            // Renders made for this step (not cache hits), counted once each: the same count
-            // whether or not the coordinator restarted meanwhile.
-            let step = self.progress.search.pending().first().map(|r| r.index);
-            let mut rendered: Vec<[u8; 32]> = pending
+            let scores: Vec<Score> = pending
                 .iter()
-                .filter(|p| Some(self.scores[&p.identity].1) == step)
-                .map(|p| p.identity)
+                .map(|(p, _)| self.scores[&p.identity].0)
                 .collect();
-            rendered.sort_unstable();
-            rendered.dedup();
-            let n = rendered.len() as u64;
-            self.progress.search.submit(&scores)?;
+            // Renders made for this step (not cache hits), counted once each: the same count
+            // whether or not the coordinator restarted meanwhile. A render whose stream (same
+            // assignment and seed) was rendered with fewer photons for an earlier step counts
+            // only the photons beyond those, as in one process.
+            let step = self.progress.search.pending().first().map(|r| r.index);
+            let budgets = self.progress.search.budgets();
+            let mut rendered: Vec<&(GroupItem, u32)> = pending
+                .iter()
+                .filter(|(p, _)| Some(self.scores[&p.identity].1) == step)
+                .collect();
+            rendered.sort_unstable_by_key(|(p, _)| p.identity);
+            rendered.dedup_by_key(|(p, _)| p.identity);
+            for (p, photons) in rendered {
+                let before = budgets
+                    .iter()
+                    .filter(|&&b| b != *photons)
+                    .filter(|&&b| {
+                        let id = identity(
+                            &p.item.assignment,
+                            &table,
+                            geometry,
+                            p.item.seed,
+                            b,
+                            &fingerprint,
+                        );
+                        self.scores
+                            .get(&id)
+                            .is_some_and(|(_, s)| step.is_some_and(|step| *s < step))
+                    })
+                    .max()
+                    .copied()
+                    .unwrap_or(0);
+                self.progress.used.renders += 1;
+                self.progress.used.photons += u64::from(photons - before.min(*photons)) * sources;
+            }
+            self.progress.search.submit_scores(&scores)?;
             self.progress.used.requests += pending.len() as u64;
-            self.progress.used.renders += n;
-            self.progress.used.photons += n * sources * u64::from(photons);
             self.persist(store)?;
         }
     }
@@ -406,8 +463,15 @@ impl Job {
         if matches!(self.plan.target, TargetSource::Synthesized { .. }) {
             store.put_blob(&self.id, "target", &encode_f32(&scoring.target.values))?;
         }
-        tracing::info!("job {}: ε = {:.6}", self.id, scoring.epsilon);
-        self.progress.epsilon = Some(scoring.epsilon);
+        let finest = self.progress.search.config().photons.level(u32::MAX);
+        for (photons, e) in &scoring.epsilons {
+            tracing::info!(
+                "job {}: ε = {e:.6} at {photons} photons per source",
+                self.id
+            );
+        }
+        self.progress.epsilon = scoring.epsilons.get(&finest).copied();
+        self.progress.epsilons = scoring.epsilons.clone();
         self.progress.phase = Phase::Searching;
         self.scoring = Some(scoring);
         self.setup = SetupCounts::default();
@@ -443,11 +507,16 @@ impl Job {
     ) -> Result<()> {
         let sources = group.geometry.sources() as u64;
         self.progress.photons_simulated +=
-            sources * u64::from(group.photons) * group.items.len() as u64;
+            sources * u64::from(group.photons - group.start) * group.items.len() as u64;
         self.progress.used.scatter_events += group.scatter_events;
         let purpose = group.purpose;
         let photons = group.photons;
         let items: Vec<[u8; 32]> = group.items.iter().map(|i| i.identity).collect();
+        let streams: Vec<(Vec<u16>, u64)> = group
+            .items
+            .iter()
+            .map(|i| (i.item.assignment.clone(), i.item.seed))
+            .collect();
         let sums = group.into_sums();
         match purpose {
             Purpose::Setup(kind) => {
@@ -467,16 +536,15 @@ impl Job {
                     .first()
                     .map(|r| r.index)
                     .unwrap_or(0);
-                for (id, counts) in items.iter().zip(&sums) {
-                    let s = similarity::score(
-                        scoring.metric,
-                        &scoring.target,
-                        counts,
-                        u64::from(photons),
-                        scoring.epsilon,
-                    )?;
+                let level = self.progress.search.progress().level;
+                let full = self.progress.search.config().photons.level(level);
+                for ((id, key), counts) in items.iter().zip(streams).zip(sums) {
+                    let s = scoring.score(&counts, photons)?;
                     self.scores.insert(*id, (s, step));
                     store.put_score(&self.id, id, s, step)?;
+                    if photons < full && level == self.prefix_level {
+                        self.prefixes.keep(key, photons, counts);
+                    }
                 }
             }
         }
@@ -520,9 +588,9 @@ impl Job {
                 search,
                 assignment: &assignment,
                 similarity,
-                epsilon: self.progress.epsilon.unwrap_or(f64::NAN),
+                epsilons: &self.progress.epsilons,
                 used: self.progress.used,
-                setup_photons: self.plan.setup_photons()?,
+                photons_simulated: self.progress.photons_simulated,
                 wall_seconds: self.progress.active_seconds,
                 engine: self.engine_label(),
                 reproducible: self.progress.pinned.as_deref() != Some(ANY_ENGINE),

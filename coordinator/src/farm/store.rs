@@ -5,6 +5,7 @@
 //! Count matrices are never stored: a `kill -9` loses at most the renders in progress. The sled
 //! implementation checks a schema version when it opens a data folder.
 
+use crate::search::Score;
 use std::collections::BTreeMap;
 use std::path::Path;
 use thiserror::Error;
@@ -52,10 +53,10 @@ pub trait Store: Send + Sync {
         &self,
         job: &str,
         identity: &[u8; 32],
-        score: f64,
+        score: Score,
         step: u64,
     ) -> Result<(), StoreError>;
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (f64, u64)>, StoreError>;
+    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError>;
     /// Removes everything of a job.
     fn delete_job(&self, job: &str) -> Result<(), StoreError>;
     /// Makes every write so far durable.
@@ -176,18 +177,20 @@ impl Store for SledStore {
         &self,
         job: &str,
         identity: &[u8; 32],
-        score: f64,
+        score: Score,
         step: u64,
     ) -> Result<(), StoreError> {
         // Not flushed here: the next progress write flushes, and a lost score is re-rendered.
-        let mut value = [0u8; 16];
-        value[..8].copy_from_slice(&score.to_le_bytes());
-        value[8..].copy_from_slice(&step.to_le_bytes());
+        // Value, step, standard error (stores of older releases hold the first two only).
+        let mut value = [0u8; 24];
+        value[..8].copy_from_slice(&score.value.to_le_bytes());
+        value[8..16].copy_from_slice(&step.to_le_bytes());
+        value[16..].copy_from_slice(&score.std_error.to_le_bytes());
         self.scores.insert(prefixed(job, identity), &value)?;
         Ok(())
     }
 
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (f64, u64)>, StoreError> {
+    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError> {
         let p = prefix(job);
         let mut out = BTreeMap::new();
         for kv in self.scores.scan_prefix(&p) {
@@ -196,14 +199,24 @@ impl Store for SledStore {
                 what: "score key",
                 detail: format!("{} bytes", k.len()),
             })?;
-            let value = <[u8; 16]>::try_from(v.as_ref()).map_err(|_| StoreError::Damaged {
-                what: "score",
-                detail: format!("{} bytes", v.len()),
-            })?;
-            let (score, step) = value.split_at(8);
-            let score = f64::from_le_bytes(score.try_into().unwrap_or_default());
-            let step = u64::from_le_bytes(step.try_into().unwrap_or_default());
-            out.insert(id, (score, step));
+            if v.len() != 16 && v.len() != 24 {
+                return Err(StoreError::Damaged {
+                    what: "score",
+                    detail: format!("{} bytes", v.len()),
+                });
+            }
+            let word = |i: usize| {
+                let mut b = [0u8; 8];
+                if let Some(src) = v.get(i * 8..i * 8 + 8) {
+                    b.copy_from_slice(src);
+                }
+                b
+            };
+            let score = Score {
+                value: f64::from_le_bytes(word(0)),
+                std_error: f64::from_le_bytes(word(2)),
+            };
+            out.insert(id, (score, u64::from_le_bytes(word(1))));
         }
         Ok(out)
     }
@@ -248,16 +261,37 @@ mod tests {
             s.put_record(&b, b"rec-b").unwrap();
             s.put_progress(&a, b"p1").unwrap();
             s.put_progress(&a, b"p2").unwrap();
-            s.put_score(&a, &[7; 32], 0.25, 3).unwrap();
-            s.put_score(&b, &[7; 32], 0.5, 4).unwrap();
+            s.put_score(&a, &[7; 32], Score::exact(0.25), 3).unwrap();
+            s.put_score(
+                &b,
+                &[7; 32],
+                Score {
+                    value: 0.5,
+                    std_error: 0.125,
+                },
+                4,
+            )
+            .unwrap();
             s.put_blob(&a, "target", b"xyz").unwrap();
             s.flush().unwrap();
         }
         let s = SledStore::open(dir.path()).unwrap();
         assert_eq!(s.records().unwrap().len(), 2);
         assert_eq!(s.progress(&a).unwrap().as_deref(), Some(&b"p2"[..]));
-        assert_eq!(s.scores(&a).unwrap().get(&[7; 32]), Some(&(0.25, 3)));
-        assert_eq!(s.scores(&b).unwrap().get(&[7; 32]), Some(&(0.5, 4)));
+        assert_eq!(
+            s.scores(&a).unwrap().get(&[7; 32]),
+            Some(&(Score::exact(0.25), 3))
+        );
+        assert_eq!(
+            s.scores(&b).unwrap().get(&[7; 32]),
+            Some(&(
+                Score {
+                    value: 0.5,
+                    std_error: 0.125
+                },
+                4
+            ))
+        );
         assert_eq!(s.blob(&a, "target").unwrap().as_deref(), Some(&b"xyz"[..]));
         s.delete_job(&a).unwrap();
         assert_eq!(s.records().unwrap().len(), 1);

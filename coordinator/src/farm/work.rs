@@ -1,6 +1,8 @@
-//! A render group: renders that share geometry, material table and photon budget (all
-//! candidates of one search step, or one setup render), cut into photon-range pieces for
-//! workers, with their partial counts summed in memory.
+//! A render group: renders that share geometry, material table and photon range (the
+//! candidates of one search step that need the same photons, or one setup render), cut into
+//! photon-range pieces for workers, with their partial counts summed in memory. A group may
+//! start from counts already in hand (racing's first stage), rendering only the photons after
+//! them.
 //!
 //! Counts are additive over photon ranges (`[0, a) + [a, n) = [0, n)` per item, bit-exactly), so
 //! a group's sums do not depend on how it was cut, in what order pieces came back, or how often a
@@ -45,8 +47,10 @@ pub struct RenderGroup {
     pub geometry: Geometry,
     pub table: Vec<Material>,
     pub items: Vec<GroupItem>,
-    /// Photons per source of every render of the group.
+    /// Photons per source of every render of the group, when complete.
     pub photons: u32,
+    /// The first photon the group renders: the photons before it came summed in.
+    pub start: u32,
     /// The next photon never handed out.
     next: u32,
     /// Pieces handed back (expired, released or refused), handed out again first.
@@ -77,12 +81,26 @@ impl RenderGroup {
             table,
             items,
             photons,
+            start: 0,
             next: 0,
             requeue: VecDeque::new(),
             done: 0,
             sums,
             scatter_events: 0,
         }
+    }
+
+    /// The group with photons `[0, start)` of every item already summed in `sums` (one
+    /// matrix per item, in order): only `[start, photons)` is handed out.
+    pub fn starting_from(mut self, start: u32, sums: Vec<CountMatrix>) -> RenderGroup {
+        if start == 0 || start >= self.photons || sums.len() != self.items.len() {
+            return self;
+        }
+        self.start = start;
+        self.next = start;
+        self.done = u64::from(start);
+        self.sums = sums;
+        self
     }
 
     /// Whether a piece can be handed out now.
@@ -277,6 +295,36 @@ mod tests {
         }
         assert!(cut.is_complete());
         assert_eq!(cut.into_sums(), whole.into_sums());
+    }
+
+    #[test]
+    fn a_group_started_from_a_prefix_sums_to_the_whole_render() {
+        let mut ids = 0u64;
+        let mut next = || {
+            ids += 1;
+            ids
+        };
+        let mut whole = group(100);
+        let all = whole.take(1000, &mut next).unwrap();
+        let c = render(&whole, &all);
+        whole.accumulate(&all, c, 0);
+
+        let mut first = group(40);
+        let p = first.take(1000, &mut next).unwrap();
+        let c = render(&first, &p);
+        first.accumulate(&p, c, 0);
+        let mut rest = group(100).starting_from(40, first.into_sums());
+        assert_eq!(rest.start, 40);
+        let p = rest.take(1000, &mut next).unwrap();
+        assert_eq!(
+            (p.first, p.count),
+            (40, 60),
+            "only the photons after the prefix"
+        );
+        let c = render(&rest, &p);
+        rest.accumulate(&p, c, 0);
+        assert!(rest.is_complete());
+        assert_eq!(rest.into_sums(), whole.into_sums());
     }
 
     #[test]

@@ -3,9 +3,22 @@
 //! I/O and calls no engine; its whole state, the random generator's included, serializes, so a
 //! search restored from any step boundary ends exactly as one left alone.
 //!
+//! Beside the paper's algorithm (the default configuration) it runs the faster search's
+//! options, each on its own:
+//! - [`Seeding::PerLevel`]: common random numbers, one seed for every render of a level;
+//! - [`Photons`]: a photon budget per level, racing (a first stage with a share of the photons,
+//!   the rest spent on the contenders) and the re-scoring of a level's finalists on a fresh seed;
+//! - `early_step2`: every `M⁰`-variant (a permutation's step-2 renders, and its first step) is
+//!   requested at once when a permutation starts, so they render in parallel up front.
+//!
+//! Requests that repeat a render's identity (assignment, seed, photons) are the driver's to
+//! answer from its cache: the search asks for what it needs and does not track what was
+//! rendered.
+//!
 //! Assignments are always at the search grid's resolution (`grid²` material indices, row-major,
 //! top row first); a region of level `ℓ` is a square block of `grid / 2^ℓ` pixels.
 
+mod photons;
 mod random;
 
 use crate::seeds::{self, Stream};
@@ -15,6 +28,7 @@ use scatterfarm_worker::{Material, MaterialTable};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use photons::{Photons, Race};
 pub use random::Bounds;
 
 /// Where a level's candidate materials come from.
@@ -51,6 +65,18 @@ pub struct SearchConfig {
     pub candidates: Candidates,
     #[serde(default)]
     pub seeding: Seeding,
+    /// Photons per source of every request (empty only in checkpoints written before budgets
+    /// were part of the search; see [`Search::upgrade`]).
+    #[serde(default)]
+    pub photons: Photons,
+    /// Request all of a permutation's `M⁰`-variants up front.
+    #[serde(default)]
+    pub early_step2: bool,
+    /// Scores closer than this many standard errors of their difference tie (0: only equal
+    /// scores tie, the paper's). A tie inside a step goes to the earlier candidate, and
+    /// between the steps to step 2, as in the paper.
+    #[serde(default)]
+    pub tie_z: f64,
 }
 
 /// Why a search cannot start or go on.
@@ -68,6 +94,8 @@ pub enum SearchError {
     NoRandomMaterials,
     #[error("the material table is full")]
     TableFull,
+    #[error("photons: {0}")]
+    Photons(String),
     #[error("expected {expected} scores, got {got}")]
     ScoreCount { expected: usize, got: usize },
     #[error("score {0} is not a number")]
@@ -76,14 +104,35 @@ pub enum SearchError {
     Finished,
 }
 
-/// One render the search needs: the assignment and the seed to render it with.
+/// One render the search needs: the assignment, the seed and the photons to render it with.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RenderRequest {
     /// The request's index in the search's deterministic order.
     pub index: u64,
     pub seed: u64,
+    /// Photons per source (0 only in old checkpoints, until [`Search::upgrade`]).
+    #[serde(default)]
+    pub photons: u32,
     /// `grid²` indices into the search's table.
     pub assignment: Vec<u16>,
+}
+
+/// A render's score and its standard error from the render's own Monte Carlo noise
+/// (`similarity::score`); racing compares candidates with it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Score {
+    pub value: f64,
+    pub std_error: f64,
+}
+
+impl Score {
+    /// A score known without error.
+    pub fn exact(value: f64) -> Score {
+        Score {
+            value,
+            std_error: 0.0,
+        }
+    }
 }
 
 /// The best assignment of a level.
@@ -91,9 +140,9 @@ pub struct RenderRequest {
 pub struct LevelResult {
     pub level: u32,
     pub assignment: Vec<u16>,
-    /// The score of the render that produced it.
+    /// The score of the render that produced it (with re-scoring: of its re-scoring render).
     pub score: f64,
-    /// Which permutation produced it.
+    /// Which permutation produced it (with re-scoring, T when the level kept its starting map).
     pub permutation: u32,
 }
 
@@ -107,10 +156,44 @@ pub struct Progress {
     /// Regions finished in this permutation, and the level's region count.
     pub region: u32,
     pub regions: u32,
+    /// Requests answered so far (renders or cache hits).
     pub renders_done: u64,
-    /// Renders the whole search needs (an estimate in unknown-materials mode).
+    /// Requests the whole search makes (exact for the paper's search on a dictionary; an
+    /// estimate with racing, early step 2, re-scoring or unknown materials).
     pub renders_total: u64,
     pub best_score: Option<f64>,
+}
+
+/// A racing step's stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum Stage {
+    /// Every candidate with the level's photons (no racing).
+    Full,
+    /// Every candidate with the first stage's photons.
+    First,
+    /// These candidates (indices into the step's) with the level's photons.
+    Second { survivors: Vec<usize> },
+}
+
+/// One step's candidates: step 1's, then step 2's from `step2_from`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Step {
+    assignments: Vec<Vec<u16>>,
+    /// Each candidate's seed: both racing stages render a candidate on it.
+    seeds: Vec<u64>,
+    step2_from: usize,
+    stage: Stage,
+}
+
+/// What the pending requests are for.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+enum Waiting {
+    /// Early step 2: a permutation's `M⁰`-variants. Their scores are not used here: the steps
+    /// that need them request them again and the driver answers from its cache.
+    Prefetch,
+    Step(Step),
+    /// A level's distinct finalists on the re-scoring seed.
+    Rescore(Vec<LevelResult>),
 }
 
 /// The search's position inside a level.
@@ -131,6 +214,13 @@ struct LevelState {
     current_score: Option<f64>,
     /// The best final `M^R` of the permutations so far.
     best: Option<LevelResult>,
+    /// Every finished permutation's final `M^R` (for re-scoring).
+    #[serde(default)]
+    finals: Vec<LevelResult>,
+    /// With early step 2 and per-request seeds: the index of this permutation's first
+    /// `M⁰`-variant request, whose seeds the steps reuse.
+    #[serde(default)]
+    early_base: Option<u64>,
 }
 
 /// The search state machine.
@@ -143,10 +233,14 @@ pub struct Search {
     next_request: u64,
     /// Finished levels.
     levels: Vec<LevelResult>,
-    /// `None` before level 1 starts (level 0 runs from `pending` alone) and after the end.
+    /// `None` after the end.
     state: Option<LevelState>,
     pending: Vec<RenderRequest>,
-    /// Whether `pending` holds step-2 requests after the step-1 ones.
+    /// What `pending` is for (`None` only in checkpoints of older releases, which held full
+    /// steps described by `pending_step2`).
+    #[serde(default)]
+    waiting: Option<Waiting>,
+    #[serde(default, skip_serializing)]
     pending_step2: bool,
     finished: bool,
 }
@@ -160,6 +254,9 @@ impl Search {
         }
         if config.permutations == 0 {
             return Err(SearchError::Permutations);
+        }
+        if let Some(problem) = config.photons.problem() {
+            return Err(SearchError::Photons(problem));
         }
         match &config.candidates {
             Candidates::Dictionary(d) if d.is_empty() => return Err(SearchError::EmptyDictionary),
@@ -180,25 +277,45 @@ impl Search {
             levels: Vec::new(),
             state: None,
             pending: Vec::new(),
+            waiting: None,
             pending_step2: false,
             finished: false,
         };
         let candidates = search.level_candidates(0, &[])?;
-        let pixels = search.pixels();
-        let assignments: Vec<Vec<u16>> = candidates.iter().map(|&c| vec![c; pixels]).collect();
+        // Level 0 is one step over one region (the whole medium) from a map that every
+        // candidate replaces entirely.
+        let m0 = vec![candidates[0]; search.pixels()];
         search.state = Some(LevelState {
             level: 0,
             candidates,
-            m0: Vec::new(),
+            m0: m0.clone(),
             permutation: 0,
             order: vec![0],
             done: 0,
-            current: Vec::new(),
+            current: m0,
             current_score: None,
             best: None,
+            finals: Vec::new(),
+            early_base: None,
         });
-        search.emit(assignments, false);
+        search.emit_steps();
         Ok(search)
+    }
+
+    /// Completes a search restored from a checkpoint written before photon budgets were part
+    /// of the search: it takes `fresh`'s photon plan (the plan its job resolves to today).
+    pub fn upgrade(&mut self, fresh: &SearchConfig) {
+        if !self.config.photons.per_level.is_empty() {
+            return;
+        }
+        self.config.photons = fresh.photons.clone();
+        let level = self.state.as_ref().map(|s| s.level).unwrap_or(0);
+        let photons = self.config.photons.level(level);
+        for r in &mut self.pending {
+            if r.photons == 0 {
+                r.photons = photons;
+            }
+        }
     }
 
     pub fn config(&self) -> &SearchConfig {
@@ -233,6 +350,11 @@ impl Search {
         }
     }
 
+    /// Every photons-per-source value the search renders with (each needs its own ε).
+    pub fn budgets(&self) -> Vec<u32> {
+        self.config.photons.budgets(self.max_level() + 1)
+    }
+
     /// The best assignment known now: the current permutation's `M^{i−1}` if it beats the
     /// last finished level, else that level's best.
     pub fn current_best(&self) -> Option<(Vec<u16>, f64)> {
@@ -259,17 +381,42 @@ impl Search {
         self.config.grid.trailing_zeros()
     }
 
+    /// Permutations of `level` (level 0 has one step and no permutations).
+    fn permutations_of(&self, level: u32) -> u32 {
+        if level == 0 {
+            1
+        } else {
+            self.config.permutations
+        }
+    }
+
+    /// Requests a level with `d` candidates makes.
+    fn level_requests(&self, level: u32, d: u64) -> u64 {
+        let racing = self.config.photons.first_stage(level).is_some();
+        // With racing, every candidate runs the first stage and, on a guess, half the second.
+        let staged = |n: u64| if racing { n + n.div_ceil(2) } else { n };
+        if level == 0 {
+            return staged(d);
+        }
+        let regions = 4u64.pow(level);
+        let t = u64::from(self.config.permutations);
+        let steps = t * (staged(d) + (regions - 1) * staged(2 * d));
+        let prefetch = match (self.config.early_step2, self.config.seeding) {
+            (false, _) => 0,
+            (true, Seeding::PerLevel) => regions * d,
+            (true, Seeding::PerRequest) => t * regions * d,
+        };
+        let rescore = if self.config.photons.rescore.is_some() {
+            t + 1
+        } else {
+            0
+        };
+        steps + prefetch + rescore
+    }
+
     /// Where the search stands.
     pub fn progress(&self) -> Progress {
         let levels = self.max_level() + 1;
-        let per_level = |level: u32, d: u64| -> u64 {
-            if level == 0 {
-                d
-            } else {
-                let regions = 4u64.pow(level);
-                u64::from(self.config.permutations) * (d + (regions - 1) * 2 * d)
-            }
-        };
         let d = self
             .state
             .as_ref()
@@ -282,20 +429,21 @@ impl Search {
         let renders_total = if self.finished {
             self.next_request
         } else {
-            // Renders of finished work plus this level's and later levels' counts at today's
-            // candidate count (exact for dictionary searches).
-            let before: u64 = (0..level).map(|l| per_level(l, self.level_d(l))).sum();
-            before + (level..levels).map(|l| per_level(l, d)).sum::<u64>()
+            // Requests of finished work plus this level's and later levels' counts at today's
+            // candidate count (exact for the paper's search on a dictionary).
+            let before: u64 = (0..level)
+                .map(|l| self.level_requests(l, self.level_d(l)))
+                .sum();
+            before
+                + (level..levels)
+                    .map(|l| self.level_requests(l, d))
+                    .sum::<u64>()
         };
         Progress {
             level,
             levels,
             permutation,
-            permutations: if level == 0 {
-                1
-            } else {
-                self.config.permutations
-            },
+            permutations: self.permutations_of(level),
             region,
             regions,
             renders_done: self.next_request - self.pending.len() as u64,
@@ -304,7 +452,7 @@ impl Search {
         }
     }
 
-    /// Candidates used at a finished level (for render totals).
+    /// Candidates used at a finished level (for request totals).
     fn level_d(&self, level: u32) -> u64 {
         match &self.config.candidates {
             Candidates::Dictionary(d) => d.len() as u64,
@@ -340,25 +488,30 @@ impl Search {
         }
     }
 
-    fn emit(&mut self, assignments: Vec<Vec<u16>>, step2: bool) {
-        let level = self.state.as_ref().map(|s| s.level).unwrap_or(0);
-        let (seed, seeding) = (self.config.seed, self.config.seeding);
-        self.pending = assignments
+    /// The seed of request `index` of `level` under the configured seeding.
+    fn seed_for(&self, level: u32, index: u64) -> u64 {
+        match self.config.seeding {
+            Seeding::PerRequest => seeds::derive(self.config.seed, Stream::Render(index)),
+            Seeding::PerLevel => seeds::derive(self.config.seed, Stream::LevelRender(level)),
+        }
+    }
+
+    /// Makes `(assignment, seed, photons)` the pending requests, numbered in order.
+    fn emit(&mut self, requests: Vec<(Vec<u16>, u64, u32)>, waiting: Waiting) {
+        self.pending = requests
             .into_iter()
-            .map(|assignment| {
+            .map(|(assignment, seed, photons)| {
                 let index = self.next_request;
                 self.next_request += 1;
                 RenderRequest {
                     index,
-                    seed: match seeding {
-                        Seeding::PerRequest => seeds::derive(seed, Stream::Render(index)),
-                        Seeding::PerLevel => seeds::derive(seed, Stream::LevelRender(level)),
-                    },
+                    seed,
+                    photons,
                     assignment,
                 }
             })
             .collect();
-        self.pending_step2 = step2;
+        self.waiting = Some(waiting);
     }
 
     /// The pixels of region `r` at `level`.
@@ -378,24 +531,62 @@ impl Search {
         a
     }
 
-    /// Emits step 1 (and step 2 when `i > 1`) for the next region of the current permutation.
+    /// Photons per source of a step's first requests at `level`, and their stage.
+    fn opening_stage(&self, level: u32) -> (u32, Stage) {
+        match self.config.photons.first_stage(level) {
+            Some(first) => (first, Stage::First),
+            None => (self.config.photons.level(level), Stage::Full),
+        }
+    }
+
+    /// Emits the steps (1, and 2 when `i > 1`) for the next region of the current permutation.
     fn emit_steps(&mut self) {
         let Some(s) = self.state.as_ref() else { return };
-        let r = s.order[s.done];
+        let (level, r, d) = (s.level, s.order[s.done], s.candidates.len());
         let mut assignments: Vec<Vec<u16>> = s
             .candidates
             .iter()
-            .map(|&c| self.with_region(&s.current, s.level, r, c))
+            .map(|&c| self.with_region(&s.current, level, r, c))
             .collect();
-        let step2 = s.done > 0;
-        if step2 {
+        if s.done > 0 {
             assignments.extend(
                 s.candidates
                     .iter()
-                    .map(|&c| self.with_region(&s.m0, s.level, r, c)),
+                    .map(|&c| self.with_region(&s.m0, level, r, c)),
             );
         }
-        self.emit(assignments, step2);
+        // An `M⁰`-variant requested up front (step 2's candidates, and step 1's at i = 1)
+        // keeps that request's seed; everything else is seeded by its own request index.
+        let early_seed = |j: usize| {
+            s.early_base
+                .map(|base| self.seed_for(level, base + (s.done * d + j) as u64))
+        };
+        let first = self.next_request;
+        let seeds: Vec<u64> = (0..assignments.len())
+            .map(|j| {
+                let variant = if s.done == 0 {
+                    Some(j)
+                } else {
+                    j.checked_sub(d)
+                };
+                variant
+                    .and_then(early_seed)
+                    .unwrap_or_else(|| self.seed_for(level, first + j as u64))
+            })
+            .collect();
+        let (photons, stage) = self.opening_stage(level);
+        let requests = assignments
+            .iter()
+            .zip(&seeds)
+            .map(|(a, &seed)| (a.clone(), seed, photons))
+            .collect();
+        let step = Step {
+            step2_from: if s.done > 0 { d } else { assignments.len() },
+            assignments,
+            seeds,
+            stage,
+        };
+        self.emit(requests, Waiting::Step(step));
     }
 
     /// Starts permutation `permutation` of `level` from `M⁰`.
@@ -408,7 +599,32 @@ impl Search {
         s.done = 0;
         s.current = s.m0.clone();
         s.current_score = None;
-        self.emit_steps();
+        s.early_base = None;
+        let prefetch = self.config.early_step2
+            && !(self.config.seeding == Seeding::PerLevel && s.permutation > 0);
+        if !prefetch {
+            self.emit_steps();
+            return;
+        }
+        // Every M⁰-variant, in the permutation's region order; under common random numbers
+        // they are the same for every permutation of the level, so only the first asks.
+        let Some(s) = self.state.as_ref() else { return };
+        let level = s.level;
+        let (photons, _) = self.opening_stage(level);
+        let first = self.next_request;
+        let mut requests = Vec::new();
+        for &r in &s.order {
+            for &c in &s.candidates {
+                let seed = self.seed_for(level, first + requests.len() as u64);
+                requests.push((self.with_region(&s.m0, level, r, c), seed, photons));
+            }
+        }
+        if self.config.seeding == Seeding::PerRequest {
+            if let Some(s) = self.state.as_mut() {
+                s.early_base = Some(first);
+            }
+        }
+        self.emit(requests, Waiting::Prefetch);
     }
 
     /// Starts `level` (≥ 1) from the previous level's best.
@@ -429,13 +645,21 @@ impl Search {
             current: m0,
             current_score: None,
             best: None,
+            finals: Vec::new(),
+            early_base: None,
         });
         self.start_permutation();
         Ok(())
     }
 
-    /// Hands in the scores of every pending request, in order, and advances the search.
+    /// Hands in the scores of every pending request, in order, as exact values.
     pub fn submit(&mut self, scores: &[f64]) -> Result<(), SearchError> {
+        let scores: Vec<Score> = scores.iter().map(|&v| Score::exact(v)).collect();
+        self.submit_scores(&scores)
+    }
+
+    /// Hands in the scores of every pending request, in order, and advances the search.
+    pub fn submit_scores(&mut self, scores: &[Score]) -> Result<(), SearchError> {
         if self.finished {
             return Err(SearchError::Finished);
         }
@@ -445,45 +669,118 @@ impl Search {
                 got: scores.len(),
             });
         }
-        if let Some(&nan) = scores.iter().find(|s| s.is_nan()) {
-            return Err(SearchError::ScoreNaN(nan));
+        if let Some(nan) = scores
+            .iter()
+            .find(|s| s.value.is_nan() || s.std_error.is_nan())
+        {
+            return Err(SearchError::ScoreNaN(nan.value));
         }
-        let pending = std::mem::take(&mut self.pending);
+        let waiting = match self.waiting.take() {
+            Some(w) => w,
+            None => self.legacy_waiting(),
+        };
+        self.pending.clear();
+        match waiting {
+            Waiting::Prefetch => {
+                self.emit_steps();
+                Ok(())
+            }
+            Waiting::Step(step) => self.step_scored(step, scores),
+            Waiting::Rescore(finalists) => {
+                // The best re-scored finalist (ties: the earlier permutation).
+                let best = best_of(scores, 0..finalists.len()).unwrap_or(0);
+                if let Some(f) = finalists.get(best) {
+                    self.levels.push(LevelResult {
+                        score: scores[best].value,
+                        ..f.clone()
+                    });
+                }
+                self.after_level()
+            }
+        }
+    }
+
+    /// What an older release's pending requests were: one full step.
+    fn legacy_waiting(&self) -> Waiting {
+        let n = self.pending.len();
+        Waiting::Step(Step {
+            assignments: self.pending.iter().map(|r| r.assignment.clone()).collect(),
+            seeds: self.pending.iter().map(|r| r.seed).collect(),
+            step2_from: if self.pending_step2 { n / 2 } else { n },
+            stage: Stage::Full,
+        })
+    }
+
+    /// A step's stage came back: race on, or decide the step.
+    fn step_scored(&mut self, step: Step, scores: &[Score]) -> Result<(), SearchError> {
+        let evaluated: Vec<usize> = match &step.stage {
+            Stage::Full => (0..step.assignments.len()).collect(),
+            Stage::Second { survivors } => survivors.clone(),
+            Stage::First => {
+                let race = self
+                    .config
+                    .photons
+                    .race
+                    .unwrap_or(Race { share: 1.0, z: 0.0 });
+                let leader = best_of(scores, 0..scores.len()).unwrap_or(0);
+                let (lv, le) = (scores[leader].value, scores[leader].std_error);
+                let survivors: Vec<usize> = (0..scores.len())
+                    .filter(|&c| {
+                        c == leader || race.survives(scores[c].value, scores[c].std_error, lv, le)
+                    })
+                    .collect();
+                let level = self.state.as_ref().map(|s| s.level).unwrap_or(0);
+                let photons = self.config.photons.level(level);
+                let requests = survivors
+                    .iter()
+                    .map(|&c| (step.assignments[c].clone(), step.seeds[c], photons))
+                    .collect();
+                self.emit(
+                    requests,
+                    Waiting::Step(Step {
+                        stage: Stage::Second { survivors },
+                        ..step
+                    }),
+                );
+                return Ok(());
+            }
+        };
+        // Ties (the paper's rule): inside a step the earliest candidate tied with the best,
+        // between the steps step 2 unless step 1 beats it (its "otherwise"). Two scores tie
+        // when neither beats the other by more than `tie_z` standard errors of their
+        // difference; with `tie_z` = 0, when they are equal.
+        let z = self.config.tie_z;
+        let score_of = |c: usize| evaluated.iter().position(|&e| e == c).map(|k| scores[k]);
+        let beats = |a: Score, b: Score| {
+            a.value > b.value + z * (a.std_error.powi(2) + b.std_error.powi(2)).sqrt()
+        };
+        let best_in = |range: std::ops::Range<usize>| {
+            let scored: Vec<(usize, Score)> =
+                range.filter_map(|c| score_of(c).map(|s| (c, s))).collect();
+            let best = scored
+                .iter()
+                .copied()
+                .reduce(|b, v| if b.1.value >= v.1.value { b } else { v })?;
+            scored.into_iter().find(|&(_, v)| !beats(best.1, v))
+        };
+        let b1 = best_in(0..step.step2_from);
+        let b2 = best_in(step.step2_from..step.assignments.len());
+        let (winner, score) = match (b1, b2) {
+            (Some(one), Some(two)) if beats(one.1, two.1) => (one.0, one.1.value),
+            (_, Some(two)) => (two.0, two.1.value),
+            (Some(one), None) => (one.0, one.1.value),
+            (None, None) => {
+                return Err(SearchError::ScoreCount {
+                    expected: step.assignments.len(),
+                    got: 0,
+                })
+            }
+        };
         let Some(mut s) = self.state.take() else {
             return Err(SearchError::Finished);
         };
-        let d = s.candidates.len();
-        // Ties inside a step go to the earlier candidate.
-        let best_of = |range: std::ops::Range<usize>| {
-            range.fold(None::<usize>, |best, i| match best {
-                Some(b) if scores[b] >= scores[i] => Some(b),
-                _ => Some(i),
-            })
-        };
-        let Some(b1) = best_of(0..d) else {
-            return Err(SearchError::ScoreCount {
-                expected: d,
-                got: 0,
-            });
-        };
-
-        if s.level == 0 {
-            self.levels.push(LevelResult {
-                level: 0,
-                assignment: pending[b1].assignment.clone(),
-                score: scores[b1],
-                permutation: 0,
-            });
-            return self.after_level();
-        }
-
-        // Step 1 against step 2: a tie goes to step 2 (the paper's "otherwise").
-        let winner = match self.pending_step2.then(|| best_of(d..2 * d)).flatten() {
-            Some(b2) if scores[b2] >= scores[b1] => b2,
-            _ => b1,
-        };
-        s.current = pending[winner].assignment.clone();
-        s.current_score = Some(scores[winner]);
+        s.current = step.assignments[winner].clone();
+        s.current_score = Some(score);
         s.done += 1;
         if s.done < s.order.len() {
             self.state = Some(s);
@@ -491,25 +788,58 @@ impl Search {
             return Ok(());
         }
         // The permutation is finished: keep it if it beats the earlier ones (ties: earlier).
-        let score = scores[winner];
+        let last = LevelResult {
+            level: s.level,
+            assignment: s.current.clone(),
+            score,
+            permutation: s.permutation,
+        };
         if s.best.as_ref().is_none_or(|b| score > b.score) {
-            s.best = Some(LevelResult {
-                level: s.level,
-                assignment: s.current.clone(),
-                score,
-                permutation: s.permutation,
-            });
+            s.best = Some(last.clone());
         }
+        s.finals.push(last);
         s.permutation += 1;
-        if s.permutation < self.config.permutations {
+        if s.permutation < self.permutations_of(s.level) {
             self.state = Some(s);
             self.start_permutation();
             return Ok(());
         }
-        if let Some(best) = s.best.take() {
-            self.levels.push(best);
+        // Re-scoring: the distinct finalists on one fresh seed, when there is a choice. The
+        // level's starting map `M⁰` is the last finalist (numbered as permutation T), so a
+        // level whose changes a fresh render does not confirm keeps its parent's map.
+        let mut finalists: Vec<LevelResult> = Vec::new();
+        let start = LevelResult {
+            level: s.level,
+            assignment: s.m0.clone(),
+            // Replaced by its re-scoring; the parent's score until then (a finite number, as
+            // checkpoints need).
+            score: self.levels.last().map_or(0.0, |l| l.score),
+            permutation: self.config.permutations,
+        };
+        for f in s.finals.iter().chain([&start]) {
+            if !finalists.iter().any(|g| g.assignment == f.assignment) {
+                finalists.push(f.clone());
+            }
         }
-        self.after_level()
+        let level = s.level;
+        match self.config.photons.rescore {
+            Some(photons) if level > 0 && finalists.len() > 1 => {
+                let seed = seeds::derive(self.config.seed, Stream::Rescore(level));
+                let requests = finalists
+                    .iter()
+                    .map(|f| (f.assignment.clone(), seed, photons))
+                    .collect();
+                self.state = Some(s);
+                self.emit(requests, Waiting::Rescore(finalists));
+                Ok(())
+            }
+            _ => {
+                if let Some(best) = s.best.take() {
+                    self.levels.push(best);
+                }
+                self.after_level()
+            }
+        }
     }
 
     fn after_level(&mut self) -> Result<(), SearchError> {
@@ -518,6 +848,7 @@ impl Search {
             self.finished = true;
             self.state = None;
             self.pending.clear();
+            self.waiting = None;
             Ok(())
         } else {
             self.start_level(next)
@@ -528,6 +859,14 @@ impl Search {
     pub fn materials(&self) -> Vec<Material> {
         self.table.physics()
     }
+}
+
+/// The index in `range` of the highest score (ties: the earliest).
+fn best_of(scores: &[Score], range: std::ops::Range<usize>) -> Option<usize> {
+    range.fold(None::<usize>, |best, i| match best {
+        Some(b) if scores[b].value >= scores[i].value => Some(b),
+        _ => Some(i),
+    })
 }
 
 /// The distinct values of `a`, ascending.
