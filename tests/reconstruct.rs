@@ -73,9 +73,57 @@ fn two_and_three_material_scenes_are_found_exactly() {
 }
 
 #[test]
-fn the_seed_fixes_the_result() {
+fn the_fast_search_finds_them_with_a_fraction_of_the_photons() {
     let dir = tempfile::tempdir().unwrap();
-    let quick = ["--iterations", "2", "--permutations", "2"];
+    for (name, scene) in [("two", TWO), ("three", THREE)] {
+        let report = reconstruct(
+            dir.path(),
+            scene,
+            name,
+            &[
+                "--iterations",
+                "32",
+                "--permutations",
+                "3",
+                "--search",
+                "fast",
+            ],
+        );
+        // Within one pixel: with a tenth of the photons per render the fast search's ε is
+        // looser, and one pixel's change can stay within it (or within one standard error).
+        let accuracy = report["pixel_accuracy"].as_f64().unwrap();
+        assert!(accuracy >= 15.0 / 16.0, "{name}: {report:#}");
+        // The paper's search renders 3 + 3 × (3 + 3·6) + 3 × (3 + 15·6) requests of
+        // 48 × 32 × 512 photons for three materials (2 + … for two); fast needs a small part.
+        let d: u64 = if name == "two" { 2 } else { 3 };
+        let paper_requests = d + 3 * (d + 3 * 2 * d) + 3 * (d + 15 * 2 * d);
+        let paper = paper_requests * 48 * 32 * 512;
+        let photons = report["photons"].as_u64().unwrap();
+        assert!(
+            photons * 8 < paper,
+            "{name}: {photons} photons, paper {paper}"
+        );
+        assert!(report["requests"].as_u64().unwrap() > report["renders"].as_u64().unwrap());
+    }
+}
+
+#[test]
+fn the_seed_fixes_the_result() {
+    for search in ["paper", "fast"] {
+        the_seed_fixes_the_result_of(search);
+    }
+}
+
+fn the_seed_fixes_the_result_of(search: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let quick = [
+        "--iterations",
+        "2",
+        "--permutations",
+        "2",
+        "--search",
+        search,
+    ];
     let a = reconstruct(
         dir.path(),
         THREE,
@@ -102,9 +150,9 @@ fn the_seed_fixes_the_result() {
         o["configuration"].as_object_mut().unwrap().remove("scene");
         v
     };
-    assert_eq!(strip(a.clone()), strip(b));
+    assert_eq!(strip(a.clone()), strip(b), "{search}");
     // Another seed draws other streams: another calibration, other permutations.
-    assert_ne!(a["epsilon"], c["epsilon"]);
+    assert_ne!(a["epsilon"], c["epsilon"], "{search}");
 }
 
 #[test]

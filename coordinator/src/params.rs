@@ -48,7 +48,9 @@ pub mod fast {
     pub const RACE_Z: f64 = 3.0;
     /// Re-scoring photons, as a share of the nominal budget.
     pub const RESCORE_SHARE: f64 = 1.0;
-    /// Scores within this many standard errors of each other tie: a change needs evidence.
+    /// Scores within one standard error of each other tie (then the paper's rule decides):
+    /// under common random numbers exact ties are rare, and changes the noise of one seed
+    /// supports are kept out.
     pub const TIE_Z: f64 = 1.0;
 }
 

@@ -57,6 +57,20 @@ fn fraction(count: u32, photons: u64) -> f32 {
     (f64::from(count) / photons as f64) as f32
 }
 
+/// That a render can be scored against `target`: the same shape, and photons behind it.
+fn check(target: &Target, counts: &CountMatrix, photons: u64) -> Result<(), SimilarityError> {
+    if counts.counts.len() != target.values.len() {
+        return Err(SimilarityError::Shape {
+            expected: target.values.len(),
+            got: counts.counts.len(),
+        });
+    }
+    if photons == 0 {
+        return Err(SimilarityError::NoPhotons);
+    }
+    Ok(())
+}
+
 /// The similarity of a render (`counts` over `photons_per_source` photons) to `target`.
 pub fn score(
     metric: Metric,
@@ -65,15 +79,7 @@ pub fn score(
     photons_per_source: u64,
     epsilon: f64,
 ) -> Result<f64, SimilarityError> {
-    if counts.counts.len() != target.values.len() {
-        return Err(SimilarityError::Shape {
-            expected: target.values.len(),
-            got: counts.counts.len(),
-        });
-    }
-    if photons_per_source == 0 {
-        return Err(SimilarityError::NoPhotons);
-    }
+    check(target, counts, photons_per_source)?;
     let pairs = target
         .values
         .iter()
@@ -159,15 +165,7 @@ pub fn std_error(
     photons_per_source: u64,
     epsilon: f64,
 ) -> Result<f64, SimilarityError> {
-    if counts.counts.len() != target.values.len() {
-        return Err(SimilarityError::Shape {
-            expected: target.values.len(),
-            got: counts.counts.len(),
-        });
-    }
-    if photons_per_source == 0 {
-        return Err(SimilarityError::NoPhotons);
-    }
+    check(target, counts, photons_per_source)?;
     let n = photons_per_source as f64;
     let nr = target.photons_per_source.max(1) as f64;
     let noise = |c: u32| {
