@@ -312,6 +312,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         epsilons: s.epsilons.clone(),
         requests: s.used.requests,
         renders: s.used.renders,
+        batches: s.used.batches,
         photons: s.used.photons,
         photons_simulated: s.photons_simulated,
         wall_seconds: s.wall_seconds,

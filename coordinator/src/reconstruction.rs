@@ -87,6 +87,10 @@ pub struct Consumption {
     /// Photons rendered again because a first-stage prefix had been forgotten (all sources).
     #[serde(default)]
     pub recomputed: u64,
+    /// Batches of requests that needed at least one render: `renders / batches` is how many
+    /// renders can run at once, on average.
+    #[serde(default)]
+    pub batches: u64,
 }
 
 /// Renders one homogeneous or heterogeneous assignment in full and returns its counts.
@@ -186,6 +190,9 @@ pub fn drive(
             }
         }
         let table = search.materials();
+        if !missing.is_empty() {
+            used.batches += 1;
+        }
         for ((start, photons), items) in missing {
             let n_items = items.len() as u64;
             let rendered = render_range(

@@ -59,6 +59,9 @@ pub struct Report {
     pub requests: u64,
     /// Search renders and the photons they launched (all sources).
     pub renders: u64,
+    /// Batches of the search's requests that needed renders (`renders / batches` renders can
+    /// run at once, on average).
+    pub batches: u64,
     pub photons: u64,
     /// Photons the engine actually ran: search, target and calibration renders.
     pub photons_simulated: u64,

@@ -147,6 +147,8 @@ pub struct QualityRow {
     pub similarity: f64,
     pub requests: u64,
     pub renders: u64,
+    /// Batches that needed renders: renders / batches run at once on average.
+    pub batches: u64,
     /// Photons the search consumed (all sources).
     pub photons: u64,
     /// Photons engines ran: search, target and calibration renders.
@@ -309,6 +311,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 similarity: report.similarity,
                 requests: report.requests,
                 renders: report.renders,
+                batches: report.batches,
                 photons: report.photons,
                 photons_simulated: report.photons_simulated,
                 wall_seconds: report.wall_seconds,

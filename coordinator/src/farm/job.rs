@@ -429,6 +429,9 @@ impl Job {
                 .collect();
             rendered.sort_unstable_by_key(|(p, _)| p.identity);
             rendered.dedup_by_key(|(p, _)| p.identity);
+            if !rendered.is_empty() {
+                self.progress.used.batches += 1;
+            }
             for (p, photons) in rendered {
                 let before = budgets
                     .iter()
