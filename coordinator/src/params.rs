@@ -230,10 +230,13 @@ impl JobParams {
         let share = |s: f64| ((f64::from(nominal) * s).round() as u32).max(1);
         let per_level = match &self.level_photons {
             Some(v) => {
-                anyhow::ensure!(!v.is_empty(), "level photons: give at least one value");
+                anyhow::ensure!(
+                    !v.is_empty(),
+                    "level_photons (--level-photons): give at least one value"
+                );
                 anyhow::ensure!(
                     v.iter().all(|&p| p > 0),
-                    "level photons: every level needs at least one photon per source"
+                    "level_photons (--level-photons): every level needs at least one photon per source"
                 );
                 v.clone()
             }
@@ -245,12 +248,12 @@ impl JobParams {
             .unwrap_or(if fast { fast::RACE_SHARE } else { 1.0 });
         anyhow::ensure!(
             race_share > 0.0 && race_share <= 1.0,
-            "race share must lie in (0, 1], got {race_share}"
+            "race_share (--race-share) must lie in (0, 1], got {race_share}"
         );
         let race_z = self.race_z.unwrap_or(fast::RACE_Z);
         anyhow::ensure!(
             race_z.is_finite() && race_z >= 0.0,
-            "race z must be a number ≥ 0, got {race_z}"
+            "race_z (--race-z) must be a number ≥ 0, got {race_z}"
         );
         let rescore = match self.rescore_photons {
             Some(0) => None,
@@ -262,7 +265,7 @@ impl JobParams {
         let tie_z = self.tie_z.unwrap_or(if fast { fast::TIE_Z } else { 0.0 });
         anyhow::ensure!(
             tie_z.is_finite() && tie_z >= 0.0,
-            "tie z must be a number ≥ 0, got {tie_z}"
+            "tie_z (--tie-z) must be a number ≥ 0, got {tie_z}"
         );
         Ok(SearchOptions {
             metric: self.metric.unwrap_or(if fast {
