@@ -219,3 +219,52 @@ fn an_interrupted_render_leaves_no_file_behind() {
         .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+#[test]
+fn a_bad_search_option_is_reported_before_any_engine_starts() {
+    // The adapter does not exist: an engine opened before the options were checked would
+    // report the adapter instead of the option.
+    let dir = tempfile::tempdir().unwrap();
+    let err = fails(&scatterfarm(
+        &[
+            "reconstruct",
+            "--scene",
+            "demo8",
+            "--tie-z=-1",
+            "--engine",
+            "gpu",
+            "--adapter",
+            "no-such-adapter",
+            "--out",
+            "out",
+        ],
+        dir.path(),
+    ));
+    assert!(
+        err.contains("--tie-z") && !err.contains("no-such-adapter"),
+        "{err}"
+    );
+    assert!(!dir.path().join("out").exists(), "something was written");
+    let err = fails(&scatterfarm(
+        &[
+            "bench",
+            "reconstruct",
+            "--scenes",
+            "demo8",
+            "--set",
+            "race_share=2",
+            "--engine",
+            "gpu",
+            "--adapter",
+            "no-such-adapter",
+            "--out",
+            "bench.json",
+        ],
+        dir.path(),
+    ));
+    assert!(
+        err.contains("--race-share") && err.contains("demo8") && !err.contains("no-such-adapter"),
+        "{err}"
+    );
+    assert!(!dir.path().join("bench.json").exists());
+}

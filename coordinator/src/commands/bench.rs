@@ -282,7 +282,9 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     anyhow::ensure!(!args.seeds.is_empty(), "--seeds: give at least one seed");
     // Every parameter set is checked before the first (long) run.
     for scene in &scenes {
-        args.params(scene, args.seeds[0])?;
+        let params = args.params(scene, args.seeds[0])?;
+        let inputs = crate::inputs::Inputs::gather(&params, std::path::Path::new("."))?;
+        crate::plan::Plan::resolve(&params, &inputs).with_context(|| format!("scene {scene}"))?;
     }
     let engine = args.engine.open()?;
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;

@@ -104,6 +104,9 @@ pub fn run_in_process(
 pub fn run(args: ReconstructArgs) -> Result<()> {
     let report = match &args.data {
         None => {
+            // Every check that needs no engine runs before the adapter starts.
+            let inputs = Inputs::gather(&args.params, Path::new("."))?;
+            Plan::resolve(&args.params, &inputs)?;
             let engine = args.engine.open()?;
             run_in_process(&args.params, engine.as_ref(), &args.out, args.quiet)?
         }
