@@ -268,3 +268,70 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
     );
     assert!(!dir.path().join("bench.json").exists());
 }
+
+#[test]
+fn the_quality_bench_reports_each_run_and_its_level_zero_map() {
+    let dir = tempfile::tempdir().unwrap();
+    ok(&scatterfarm(
+        &[
+            "bench",
+            "reconstruct",
+            "--engine",
+            "cpu",
+            "--scenes",
+            "demo8",
+            "--grid",
+            "4",
+            "--positions",
+            "8",
+            "--directions",
+            "3",
+            "--permutations",
+            "1",
+            "--iterations",
+            "2",
+            "--photons-per-iteration",
+            "256",
+            "--target-photons",
+            "1024",
+            "--seeds",
+            "1,2",
+            "--search",
+            "fast",
+            "--keep",
+            "runs",
+            "--out",
+            "bench.json",
+        ],
+        dir.path(),
+    ));
+    let bench: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    let runs = bench["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    for run in runs {
+        let seed = run["seed"].as_u64().unwrap();
+        let report: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(dir.path().join(format!("runs/{seed}/demo8/report.json"))).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(run["pixel_accuracy"], report["pixel_accuracy"]);
+        // Level 0 is one material everywhere: demo8 has 58 moderate, 4 opaque and 2 back
+        // pixels of 64, so its accuracy is one of those shares.
+        let level0 = run["level0_pixel_accuracy"].as_f64().unwrap();
+        assert_eq!(
+            run["level0_pixel_accuracy"],
+            report["levels"][0]["pixel_accuracy"]
+        );
+        assert!(
+            [58.0, 4.0, 2.0].contains(&(level0 * 64.0).round())
+                && (level0 * 64.0 - (level0 * 64.0).round()).abs() < 1e-9,
+            "level 0 accuracy {level0}"
+        );
+    }
+    let scene = &bench["scenes"][0];
+    let mean = (runs[0]["level0_pixel_accuracy"].as_f64().unwrap()
+        + runs[1]["level0_pixel_accuracy"].as_f64().unwrap())
+        / 2.0;
+    assert!((scene["mean_level0_pixel_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12);
+}
