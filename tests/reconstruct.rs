@@ -107,6 +107,52 @@ fn the_fast_search_finds_them_with_a_fraction_of_the_photons() {
     }
 }
 
+/// The built-in 16×16 phantom (a mild object over half of a moderate field) at the quality
+/// bench's geometry: within-ε is saturated by the one-material map, so without its tiebreak the
+/// fast search keeps level 0; with it (the default) the stabilized L2 finds part of the object.
+#[test]
+fn the_tiebreak_lets_the_fast_search_leave_a_saturated_one_material_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |out: &str, extra: &[&str]| {
+        let status = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
+            .args(["reconstruct", "--scene", "phantom16", "--engine", "cpu"])
+            .args(["--grid", "8", "--positions", "16", "--directions", "3"])
+            .args(["--permutations", "1", "--iterations", "8"])
+            .args(["--target-photons", "4096", "--search", "fast", "--quiet"])
+            .arg("--out")
+            .arg(dir.path().join(out))
+            .args(extra)
+            .env("RUST_LOG", "warn")
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let report: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(dir.path().join(out).join("report.json")).unwrap(),
+        )
+        .unwrap();
+        let level0 = report["levels"][0]["pixel_accuracy"].as_f64().unwrap();
+        (report, level0)
+    };
+    let (with, level0) = run("with", &[]);
+    assert_eq!(with["configuration"]["tiebreak"], "l2-stabilized");
+    assert!((with["configuration"]["tiebreak_from"].as_f64().unwrap() - 0.997).abs() < 1e-9);
+    // Level 0 is one material: the background's share, about half the pixels.
+    assert!((0.4..0.6).contains(&level0), "{with:#}");
+    let accuracy = with["pixel_accuracy"].as_f64().unwrap();
+    assert!(
+        accuracy >= level0 + 0.1,
+        "{accuracy} vs level 0 {level0}: {with:#}"
+    );
+    let (without, level0_off) = run("without", &["--tiebreak", "off"]);
+    assert!(without["configuration"].get("tiebreak").is_none());
+    assert_eq!(level0_off, level0);
+    assert_eq!(
+        without["pixel_accuracy"].as_f64().unwrap(),
+        level0_off,
+        "{without:#}"
+    );
+}
+
 #[test]
 fn the_seed_fixes_the_result() {
     for search in ["paper", "fast"] {

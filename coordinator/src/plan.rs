@@ -168,6 +168,8 @@ pub struct Plan {
     /// The nominal budget: iterations × photons per iteration (the paper's every render).
     pub budget: Budget,
     pub metric: Metric,
+    /// The tiebreak's metric, scored beside `metric` (`Scoring::secondary`).
+    pub secondary: Option<Metric>,
     pub percentile: f64,
     pub seed: u64,
 }
@@ -350,6 +352,7 @@ impl Plan {
                 photons: options.photons.clone(),
                 early_step2: options.early_step2,
                 tie_z: options.tie_z,
+                tiebreak: options.tiebreak.map(|(_, t)| t),
             },
             table,
         )?;
@@ -374,6 +377,9 @@ impl Plan {
             common_random_numbers: options.seeding == crate::search::Seeding::PerLevel,
             early_step2: options.early_step2,
             tie_z: options.tie_z,
+            tiebreak: options.tiebreak.map(|(m, _)| m),
+            tiebreak_z: options.tiebreak.map(|(_, t)| t.z),
+            tiebreak_from: options.tiebreak.map(|(_, t)| t.from),
             level_photons: options.photons.per_level.clone(),
             race: options.photons.race,
             rescore_photons: options.photons.rescore,
@@ -395,6 +401,7 @@ impl Plan {
             target_photons,
             budget,
             metric: options.metric,
+            secondary: options.tiebreak.map(|(m, _)| m),
             percentile: params.percentile,
             seed: params.seed,
         })
@@ -496,9 +503,11 @@ impl Plan {
             geometry: self.search_geometry,
             target,
             metric: self.metric,
+            secondary: self.secondary,
             epsilons,
             with_errors: self.search.config().photons.race.is_some()
-                || self.search.config().tie_z > 0.0,
+                || self.search.config().tie_z > 0.0
+                || self.secondary.is_some(),
             chunk: self.budget.photons_per_iteration.max(1),
         }
     }

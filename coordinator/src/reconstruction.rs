@@ -10,7 +10,7 @@
 use crate::engines::{render_in_chunks, render_range};
 use crate::plan::{Plan, SetupCounts};
 use crate::prefixes::{Prefixes, DEFAULT_BYTES};
-use crate::search::{Score, Search};
+use crate::search::{Score, Search, Secondary};
 use crate::similarity::{self, Metric, Target};
 use anyhow::{Context, Result};
 use scatterfarm_worker::{CountMatrix, Engine, Geometry, Material, RenderItem};
@@ -41,6 +41,8 @@ pub struct Scoring {
     pub geometry: Geometry,
     pub target: Target,
     pub metric: Metric,
+    /// The tiebreak's metric, scored beside the primary one when the search has a tiebreak.
+    pub secondary: Option<Metric>,
     /// ε of every photons-per-source budget the search renders with.
     pub epsilons: BTreeMap<u32, f64>,
     /// Whether scores carry their standard errors (racing needs them; they cost a pass).
@@ -68,7 +70,18 @@ impl Scoring {
         } else {
             0.0
         };
-        Ok(Score { value, std_error })
+        let secondary = match self.secondary {
+            Some(metric) => Some(Secondary {
+                value: similarity::score(metric, &self.target, counts, n, epsilon)?,
+                std_error: similarity::std_error(metric, &self.target, counts, n, epsilon)?,
+            }),
+            None => None,
+        };
+        Ok(Score {
+            value,
+            std_error,
+            secondary,
+        })
     }
 }
 

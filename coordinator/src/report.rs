@@ -26,6 +26,14 @@ pub struct Configuration {
     pub common_random_numbers: bool,
     pub early_step2: bool,
     pub tie_z: f64,
+    /// The tiebreak's metric, its margin in standard errors, and the within-ε score from
+    /// which it decides (absent: no tiebreak).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak: Option<Metric>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak_z: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak_from: Option<f64>,
     pub level_photons: Vec<u32>,
     pub race: Option<Race>,
     pub rescore_photons: Option<u32>,

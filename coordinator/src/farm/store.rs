@@ -5,7 +5,7 @@
 //! Count matrices are never stored: a `kill -9` loses at most the renders in progress. The sled
 //! implementation checks a schema version when it opens a data folder.
 
-use crate::search::Score;
+use crate::search::{Score, Secondary};
 use std::collections::BTreeMap;
 use std::path::Path;
 use thiserror::Error;
@@ -181,12 +181,17 @@ impl Store for SledStore {
         step: u64,
     ) -> Result<(), StoreError> {
         // Not flushed here: the next progress write flushes, and a lost score is re-rendered.
-        // Value, step, standard error (stores of older releases hold the first two only).
-        let mut value = [0u8; 24];
-        value[..8].copy_from_slice(&score.value.to_le_bytes());
-        value[8..16].copy_from_slice(&step.to_le_bytes());
-        value[16..].copy_from_slice(&score.std_error.to_le_bytes());
-        self.scores.insert(prefixed(job, identity), &value)?;
+        // Value, step, standard error, then the secondary score and its error when there is
+        // one (stores of older releases hold the first two only, or the first three).
+        let mut value = Vec::with_capacity(40);
+        value.extend_from_slice(&score.value.to_le_bytes());
+        value.extend_from_slice(&step.to_le_bytes());
+        value.extend_from_slice(&score.std_error.to_le_bytes());
+        if let Some(s) = score.secondary {
+            value.extend_from_slice(&s.value.to_le_bytes());
+            value.extend_from_slice(&s.std_error.to_le_bytes());
+        }
+        self.scores.insert(prefixed(job, identity), value)?;
         Ok(())
     }
 
@@ -199,7 +204,7 @@ impl Store for SledStore {
                 what: "score key",
                 detail: format!("{} bytes", k.len()),
             })?;
-            if v.len() != 16 && v.len() != 24 {
+            if ![16, 24, 40].contains(&v.len()) {
                 return Err(StoreError::Damaged {
                     what: "score",
                     detail: format!("{} bytes", v.len()),
@@ -215,6 +220,10 @@ impl Store for SledStore {
             let score = Score {
                 value: f64::from_le_bytes(word(0)),
                 std_error: f64::from_le_bytes(word(2)),
+                secondary: (v.len() == 40).then(|| Secondary {
+                    value: f64::from_le_bytes(word(3)),
+                    std_error: f64::from_le_bytes(word(4)),
+                }),
             };
             out.insert(id, (score, u64::from_le_bytes(word(1))));
         }
@@ -268,6 +277,11 @@ mod tests {
                 Score {
                     value: 0.5,
                     std_error: 0.125,
+                    // A tiebreak's score (40-byte records).
+                    secondary: Some(Secondary {
+                        value: -12.5,
+                        std_error: 0.75,
+                    }),
                 },
                 4,
             )
@@ -287,7 +301,12 @@ mod tests {
             Some(&(
                 Score {
                     value: 0.5,
-                    std_error: 0.125
+                    std_error: 0.125,
+                    // A tiebreak's score (40-byte records).
+                    secondary: Some(Secondary {
+                        value: -12.5,
+                        std_error: 0.75,
+                    }),
                 },
                 4
             ))

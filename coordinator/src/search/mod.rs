@@ -9,7 +9,9 @@
 //! - [`Photons`]: a photon budget per level, racing (a first stage with a share of the photons,
 //!   the rest spent on the contenders) and the re-scoring of a level's finalists on a fresh seed;
 //! - `early_step2`: every `M⁰`-variant (a permutation's step-2 renders, and its first step) is
-//!   requested at once when a permutation starts, so they render in parallel up front.
+//!   requested at once when a permutation starts, so they render in parallel up front;
+//! - `tie_z` and [`Tiebreak`]: wider ties, and a secondary score where the primary one is
+//!   saturated (the decision rule is `ties`).
 //!
 //! Requests that repeat a render's identity (assignment, seed, photons) are the driver's to
 //! answer from its cache: the search asks for what it needs and does not track what was
@@ -20,6 +22,7 @@
 
 mod photons;
 mod random;
+mod ties;
 
 use crate::seeds::{self, Stream};
 use rand_chacha::rand_core::SeedableRng;
@@ -30,6 +33,8 @@ use thiserror::Error;
 
 pub use photons::{Photons, Race};
 pub use random::Bounds;
+use ties::Rule;
+pub use ties::{Secondary, Tiebreak};
 
 /// Where a level's candidate materials come from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,6 +82,10 @@ pub struct SearchConfig {
     /// between the steps to step 2, as in the paper.
     #[serde(default)]
     pub tie_z: f64,
+    /// Where the primary score is saturated, a secondary score decides between tied
+    /// candidates (scores then carry [`Score::secondary`]).
+    #[serde(default)]
+    pub tiebreak: Option<Tiebreak>,
 }
 
 /// Why a search cannot start or go on.
@@ -123,6 +132,9 @@ pub struct RenderRequest {
 pub struct Score {
     pub value: f64,
     pub std_error: f64,
+    /// The tiebreak's score of the same render, when the search has a [`Tiebreak`].
+    #[serde(default)]
+    pub secondary: Option<Secondary>,
 }
 
 impl Score {
@@ -131,6 +143,7 @@ impl Score {
         Score {
             value,
             std_error: 0.0,
+            secondary: None,
         }
     }
 }
@@ -688,7 +701,7 @@ impl Search {
             Waiting::Step(step) => self.step_scored(step, scores),
             Waiting::Rescore(finalists) => {
                 // The best re-scored finalist (ties: the earlier permutation).
-                let best = best_of(scores, 0..finalists.len()).unwrap_or(0);
+                let best = self.rule().rescored(scores).unwrap_or(0);
                 if let Some(f) = finalists.get(best) {
                     self.levels.push(LevelResult {
                         score: scores[best].value,
@@ -745,36 +758,22 @@ impl Search {
                 return Ok(());
             }
         };
-        // Ties (the paper's rule): inside a step the earliest candidate tied with the best,
-        // between the steps step 2 unless step 1 beats it (its "otherwise"). Two scores tie
-        // when neither beats the other by more than `tie_z` standard errors of their
-        // difference; with `tie_z` = 0, when they are equal.
-        let z = self.config.tie_z;
+        // Ties (the paper's rule, `ties`): inside a step the earliest candidate tied with the
+        // best, between the steps step 2 unless step 1 beats it (its "otherwise").
+        let rule = self.rule();
         let score_of = |c: usize| evaluated.iter().position(|&e| e == c).map(|k| scores[k]);
-        let beats = |a: Score, b: Score| {
-            a.value > b.value + z * (a.std_error.powi(2) + b.std_error.powi(2)).sqrt()
-        };
         let best_in = |range: std::ops::Range<usize>| {
             let scored: Vec<(usize, Score)> =
                 range.filter_map(|c| score_of(c).map(|s| (c, s))).collect();
-            let best = scored
-                .iter()
-                .copied()
-                .reduce(|b, v| if b.1.value >= v.1.value { b } else { v })?;
-            scored.into_iter().find(|&(_, v)| !beats(best.1, v))
+            rule.best(&scored)
         };
         let b1 = best_in(0..step.step2_from);
         let b2 = best_in(step.step2_from..step.assignments.len());
-        let (winner, score) = match (b1, b2) {
-            (Some(one), Some(two)) if beats(one.1, two.1) => (one.0, one.1.value),
-            (_, Some(two)) => (two.0, two.1.value),
-            (Some(one), None) => (one.0, one.1.value),
-            (None, None) => {
-                return Err(SearchError::ScoreCount {
-                    expected: step.assignments.len(),
-                    got: 0,
-                })
-            }
+        let Some((winner, Score { value: score, .. })) = rule.between(b1, b2) else {
+            return Err(SearchError::ScoreCount {
+                expected: step.assignments.len(),
+                got: 0,
+            });
         };
         let Some(mut s) = self.state.take() else {
             return Err(SearchError::Finished);
@@ -839,6 +838,14 @@ impl Search {
                 }
                 self.after_level()
             }
+        }
+    }
+
+    /// The decision rule of this search's configuration.
+    fn rule(&self) -> Rule {
+        Rule {
+            tie_z: self.config.tie_z,
+            tiebreak: self.config.tiebreak,
         }
     }
 

@@ -22,6 +22,7 @@ fn search(grid: u32, permutations: u32, seed: u64, dictionary: Vec<u16>) -> Sear
         photons: Photons::uniform(100),
         early_step2: false,
         tie_z: 0.0,
+        tiebreak: None,
     };
     Search::new(config, table(&names)).unwrap()
 }
@@ -216,6 +217,7 @@ fn unknown_materials_grow_the_table_and_keep_inherited_candidates() {
         photons: Photons::uniform(100),
         early_step2: false,
         tie_z: 0.0,
+        tiebreak: None,
     };
     let mut s = Search::new(config, MaterialTable::default()).unwrap();
     assert_eq!(s.table().len(), 3);
@@ -250,6 +252,7 @@ fn bad_configurations_and_submissions_are_refused() {
                 photons: Photons::uniform(100),
                 early_step2: false,
                 tie_z: 0.0,
+                tiebreak: None,
             },
             t.clone(),
         )
@@ -297,6 +300,7 @@ fn per_level_seeding_shares_one_seed_per_level() {
             photons: Photons::uniform(100),
             early_step2: false,
             tie_z: 0.0,
+            tiebreak: None,
         },
         table(&["moderate", "opaque"]),
     )
@@ -329,6 +333,7 @@ fn configured(grid: u32, permutations: u32, d: u16, seeding: Seeding, photons: P
             photons,
             early_step2: false,
             tie_z: 0.0,
+            tiebreak: None,
         },
         table(&names),
     )
@@ -343,7 +348,11 @@ fn racing(share: f64, z: f64, photons: u32) -> Photons {
 }
 
 fn score(value: f64, std_error: f64) -> Score {
-    Score { value, std_error }
+    Score {
+        value,
+        std_error,
+        secondary: None,
+    }
 }
 
 #[test]
