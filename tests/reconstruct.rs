@@ -49,7 +49,14 @@ fn two_and_three_material_scenes_are_found_exactly() {
             dir.path(),
             scene,
             name,
-            &["--iterations", "32", "--permutations", "3"],
+            &[
+                "--iterations",
+                "32",
+                "--permutations",
+                "3",
+                "--search",
+                "paper",
+            ],
         );
         assert_eq!(report["pixel_accuracy"], 1.0, "{name}: {report:#}");
         assert_eq!(report["material_sse"], 0.0);

@@ -73,8 +73,8 @@ pub struct ReconstructBenchArgs {
     /// value when comparing budgets, so every search sees the same targets.
     #[arg(long)]
     pub target_photons: Option<u32>,
-    /// The search: the paper's, or the fast one.
-    #[arg(long, value_enum, default_value_t = crate::params::SearchMode::Paper)]
+    /// The search: the fast one (the reconstructions' default), or the paper's.
+    #[arg(long, value_enum, default_value_t = crate::params::SearchMode::Fast)]
     pub search: crate::params::SearchMode,
     /// Any other job-file key, as KEY=VALUE in TOML (e.g. race_share=0.5,
     /// common_random_numbers=false, level_photons=[400,200]); repeatable.

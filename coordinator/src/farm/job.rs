@@ -35,6 +35,20 @@ pub struct JobRecord {
     pub submitted_unix: f64,
 }
 
+/// A stored job record. Records written before the fast search was the default and without a
+/// `search` key ran the paper's search, and still do.
+fn record_from_json(bytes: &[u8]) -> Result<JobRecord, serde_json::Error> {
+    let value: serde_json::Value = serde_json::from_slice(bytes)?;
+    let legacy = value
+        .get("params")
+        .is_some_and(|p| p.get("search").is_none());
+    let mut record: JobRecord = serde_json::from_value(value)?;
+    if legacy {
+        record.params.search = crate::params::SearchMode::Paper;
+    }
+    Ok(record)
+}
+
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "state", rename_all = "kebab-case")]
@@ -157,7 +171,7 @@ impl Job {
 
     /// Loads a stored job.
     pub fn restore(id: String, record: &[u8], store: &dyn Store) -> Result<Job> {
-        let record: JobRecord = serde_json::from_slice(record)
+        let record = record_from_json(record)
             .map_err(|e| StoreError::Damaged {
                 what: "job record",
                 detail: e.to_string(),
@@ -642,5 +656,34 @@ impl Job {
             None
         };
         (photons_per_second, eta)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::SearchMode;
+
+    #[test]
+    fn records_without_a_search_key_ran_the_papers_search() {
+        let old =
+            br#"{"params":{"scene":"demo8","permutations":2},"files":[],"submitted_unix":1.0}"#;
+        let record = record_from_json(old).unwrap();
+        assert_eq!(record.params.search, SearchMode::Paper);
+        assert_eq!(record.params.permutations, 2);
+        let now = JobRecord {
+            params: crate::params::JobParams {
+                scene: Some("demo8".into()),
+                ..Default::default()
+            },
+            files: vec![],
+            submitted_unix: 2.0,
+        };
+        let bytes = serde_json::to_vec(&now).unwrap();
+        assert_eq!(
+            record_from_json(&bytes).unwrap().params.search,
+            SearchMode::Fast
+        );
+        assert!(record_from_json(b"{").is_err());
     }
 }
