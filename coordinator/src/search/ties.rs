@@ -103,11 +103,17 @@ impl Rule {
         }
     }
 
-    /// The re-scored finalists' winner: with a tiebreak, decided as a step is (the earlier
-    /// finalist on ties); without one, the highest re-score (ties: the earlier).
+    /// The re-scored finalists' winner; the last finalist is the level's starting map `M⁰`.
+    /// With a tiebreak, decided as a step is, `M⁰` first: the level keeps its parent's map
+    /// unless the fresh render confirms a change (on within-ε, or saturated and by the
+    /// tiebreak); then the earlier permutation's. Without one, the highest re-score (ties:
+    /// the earlier).
     pub fn rescored(&self, scores: &[Score]) -> Option<usize> {
-        let scored: Vec<Scored> = scores.iter().copied().enumerate().collect();
+        let mut scored: Vec<Scored> = scores.iter().copied().enumerate().collect();
         if self.tiebreak.is_some() {
+            if !scored.is_empty() {
+                scored.rotate_right(1);
+            }
             return self.best(&scored).map(|(i, _)| i);
         }
         scored
@@ -195,18 +201,34 @@ mod tests {
     }
 
     #[test]
-    fn rescoring_keeps_the_highest_without_a_tiebreak_and_decides_as_a_step_with_one() {
+    fn rescoring_keeps_the_highest_without_a_tiebreak_and_the_start_unless_a_change_is_confirmed() {
+        // Two permutations' results, then the level's starting map M⁰ (last).
         let scores = [
-            s(0.995, 0.001, Some((-100.0, 2.0))),
+            s(0.995, 0.001, Some((-80.0, 2.0))),
             s(0.996, 0.001, Some((-95.0, 2.0))),
-            s(0.9955, 0.001, Some((-80.0, 2.0))),
+            s(0.9955, 0.001, Some((-100.0, 2.0))),
         ];
         let plain = Rule {
             tie_z: 1.0,
             tiebreak: None,
         };
         assert_eq!(plain.rescored(&scores), Some(1));
-        assert_eq!(RULE.rescored(&scores), Some(2));
+        // All tied on within-ε; the tiebreak confirms the first permutation's change over M⁰.
+        assert_eq!(RULE.rescored(&scores), Some(0));
+        // Not confirmed (inside the tiebreak's margin): M⁰ stays.
+        let unconfirmed = [
+            s(0.995, 0.001, Some((-99.0, 2.0))),
+            s(0.996, 0.001, Some((-98.0, 2.0))),
+            s(0.9955, 0.001, Some((-100.0, 2.0))),
+        ];
+        assert_eq!(RULE.rescored(&unconfirmed), Some(2));
+        // Confirmed on within-ε alone.
+        let clear = [
+            s(0.999, 0.0001, Some((-200.0, 2.0))),
+            s(0.99, 0.0001, Some((-95.0, 2.0))),
+            s(0.995, 0.0001, Some((-100.0, 2.0))),
+        ];
+        assert_eq!(RULE.rescored(&clear), Some(0));
         assert_eq!(RULE.rescored(&[]), None);
     }
 }
