@@ -81,13 +81,12 @@ pub mod fast {
     /// The tiebreak where within-ε is saturated: the stabilized L2 weighs every observation
     /// by a noise model, so it sees a low-contrast object the within-ε fraction cannot.
     pub const TIEBREAK: super::TiebreakMetric = super::TiebreakMetric::L2Stabilized;
-    /// The tiebreak's margin in standard errors (0.5 moved fig7a and fig7j, 2 never left
-    /// phantom16's one-material map).
+    /// The tiebreak's margin in standard errors (over six bench seeds 0.5 made wrong changes
+    /// on fig7a, 2 never left phantom16's one-material map).
     pub const TIEBREAK_Z: f64 = 1.0;
     /// Within-ε is saturated for a map missing at most this many times the observations a
-    /// perfect map misses (`1 − k/100` of them): 3 at k = 99.9 is a score of 0.997. At T = 1
-    /// factors 3 to 8 measured alike, 2 and 1 (the truth's own score) leave phantom16 near
-    /// level 0; at T = 3, 5 already lets fig7i make wrong changes.
+    /// perfect map misses (`1 − k/100` of them): 3 at k = 99.9 is a score of 0.997. Over six
+    /// bench seeds 2 leaves phantom16 nearer its level 0 and 5 makes wrong changes on fig7a.
     pub const TIEBREAK_SATURATION: f64 = 3.0;
 }
 
