@@ -40,9 +40,13 @@ pub enum SearchMode {
 pub enum TiebreakMetric {
     /// No tiebreak: the paper's tie rule alone.
     Off,
+    /// `--metric l2`'s score.
     L2,
+    /// `--metric l2-inverse-intensity`'s score.
     L2InverseIntensity,
+    /// `--metric l2-pooled`'s score.
     L2Pooled,
+    /// `--metric l2-stabilized`'s score: weights from a noise model, whatever the intensity.
     L2Stabilized,
 }
 
