@@ -109,17 +109,14 @@ impl Rule {
     /// tiebreak); then the earlier permutation's. Without one, the highest re-score (ties:
     /// the earlier).
     pub fn rescored(&self, scores: &[Score]) -> Option<usize> {
-        let mut scored: Vec<Scored> = scores.iter().copied().enumerate().collect();
         if self.tiebreak.is_some() {
+            let mut scored: Vec<Scored> = scores.iter().copied().enumerate().collect();
             if !scored.is_empty() {
                 scored.rotate_right(1);
             }
             return self.best(&scored).map(|(i, _)| i);
         }
-        scored
-            .into_iter()
-            .reduce(|b, v| if b.1.value >= v.1.value { b } else { v })
-            .map(|(i, _)| i)
+        super::best_of(scores, 0..scores.len())
     }
 }
 
