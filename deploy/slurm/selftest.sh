@@ -73,32 +73,41 @@ check "more tasks than GPUs is an error" error \
 
 if [[ -x $binary ]]; then
     # A fake srun: runs --ntasks copies of `bash -c SCRIPT` here with SLURM_LOCALID set, relays
-    # SIGUSR1 to them and, like the real one, kills them on SIGTERM.
+    # SIGUSR1 to them and, like the real one, kills them on SIGTERM and reports each task's exit
+    # status. Each task runs in its own process group under a shell that only keeps its status
+    # (like slurmstepd: no trap can interrupt its wait, and signals to the task leave it be).
     cat >"$tmp/bin/srun" <<'EOF'
 #!/usr/bin/env bash
+set -m
 n=1
 while [[ $1 == -* ]]; do
     case $1 in --ntasks=*) n=${1#--ntasks=} ;; esac
     shift
 done
+status=$(mktemp -d "${TMPDIR:-/tmp}/fake-srun.XXXXXX")
 kids=()
 for ((i = 0; i < n; i++)); do
-    SLURM_LOCALID=$i SLURM_PROCID=$i "$@" &
+    (
+        trap '' TERM USR1
+        r=0
+        SLURM_LOCALID=$i SLURM_PROCID=$i "$@" || r=$?
+        echo "$r" >"$status/$i.part" && mv "$status/$i.part" "$status/$i"
+    ) &
     kids+=($!)
 done
-trap 'kill -USR1 "${kids[@]}" 2>/dev/null' USR1
-trap 'kill -KILL "${kids[@]}" 2>/dev/null' TERM
+relay() { for k in "${kids[@]}"; do kill "-$1" -- "-$k" 2>/dev/null; done; }
+trap 'relay USR1' USR1
+trap 'relay KILL; exit 143' TERM
 rc=0
-for k in "${kids[@]}"; do
-    while kill -0 "$k" 2>/dev/null; do
-        wait "$k" || true
+for ((i = 0; i < n; i++)); do
+    until [[ -e $status/$i ]]; do
+        sleep 0.1
     done
-    r=0
-    wait "$k" || r=$?
-    # -1: bash lost the status (a trapped signal came as the task exited); the tasks' own
-    # "worker exited with status" lines are checked instead.
-    ((r == 0 || r < 0)) || rc=$r
+    r=$(<"$status/$i")
+    echo "srun: task $i: exited with status $r" >&2
+    [[ $r == 0 ]] || rc=1
 done
+rm -rf "$status"
 exit "$rc"
 EOF
     chmod +x "$tmp/bin/srun"
@@ -113,7 +122,8 @@ EOF
     # port 9: they measure their engine and retry connecting), then stop it as MODE says:
     #   batch: SIGTERM to the batch script alone (it forwards the request);
     #   all:   SIGTERM to every task process (`scancel --signal=TERM`, or --signal=TERM@120 at
-    #          the time limit), then to the batch script: each worker must get one SIGTERM only.
+    #          the time limit), then to the batch script: the forwarded SIGUSR1 must not
+    #          count as a second SIGTERM (which would make a worker quit without its task).
     flow() {
         local name=$1 mode=$2 log=$tmp/flow-$2.log batch rc pid
         echo "flow ($name)"
@@ -154,7 +164,7 @@ EOF
         check "flow ($mode): no worker quit on a second signal" 0 \
             "$(grep -c "second signal" "$log" || true)"
         check "flow ($mode): both workers exited 0" 2 \
-            "$(grep -c "worker exited with status 0" "$log" || true)"
+            "$(grep -c "srun: task .: exited with status 0" "$log" || true)"
         check "flow ($mode): names carry node, job and task" 1 \
             "$(grep -c -- "--name .*/slurm-42-1" "$log" || true)"
         if ((failures)) || [[ -n ${SELFTEST_VERBOSE:-} ]]; then
