@@ -68,7 +68,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
 /// A signal that stops the worker.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Stop {
-    /// SIGTERM or Ctrl-C (SIGINT): the first asks the worker to finish, the next quits at once.
+    /// SIGTERM or Ctrl-C (SIGINT): the first asks the worker to finish, the second quits at once.
     Terminate,
     /// SIGUSR1: asks the worker to finish and never quits it. The Slurm batch script
     /// (`deploy/slurm`) forwards its own SIGTERM to the workers as SIGUSR1 through srun, and
@@ -136,15 +136,21 @@ impl StopSignals {
         }
     }
 
-    /// Resolves on the first stop signal; after it, another SIGTERM or Ctrl-C exits the process
-    /// at once (a task in hand is then lost to the coordinator until its lease expires).
+    /// Resolves on the first stop signal; after it, a second SIGTERM or Ctrl-C exits the process
+    /// at once (a task in hand is then lost to the coordinator until its lease expires). SIGUSR1
+    /// never counts towards that second one, whichever order the two arrive in.
     async fn first_stop(mut self) {
         let first = self.next().await;
         tracing::debug!("stop signal: {first:?}");
+        let mut terminates = u32::from(first == Stop::Terminate);
         tokio::spawn(async move {
             loop {
                 match self.next().await {
                     Stop::Finish => tracing::info!("SIGUSR1: already finishing"),
+                    Stop::Terminate if terminates == 0 => {
+                        terminates = 1;
+                        tracing::info!("SIGTERM: already finishing");
+                    }
                     Stop::Terminate => {
                         tracing::warn!(
                             "second signal: quitting without returning the task in hand"
