@@ -142,13 +142,13 @@ impl StopSignals {
     async fn first_stop(mut self) {
         let first = self.next().await;
         tracing::debug!("stop signal: {first:?}");
-        let mut terminates = u32::from(first == Stop::Terminate);
+        let mut terminated = first == Stop::Terminate;
         tokio::spawn(async move {
             loop {
                 match self.next().await {
                     Stop::Finish => tracing::info!("SIGUSR1: already finishing"),
-                    Stop::Terminate if terminates == 0 => {
-                        terminates = 1;
+                    Stop::Terminate if !terminated => {
+                        terminated = true;
                         tracing::info!("SIGTERM: already finishing");
                     }
                     Stop::Terminate => {
