@@ -665,8 +665,8 @@ struct Rpc {
 /// The CPU engine's fingerprint: jobs are pinned to the first worker's, so a fake worker
 /// announces the same one as the real workers it shares jobs with.
 fn cpu_fingerprint() -> pb::EngineFingerprint {
-    use scatterfarm_worker::Engine;
-    let f = scatterfarm_worker::CpuEngine::new().fingerprint();
+    use scatterfarm_model::Engine;
+    let f = scatterfarm_engines::CpuEngine::new().fingerprint();
     pb::EngineFingerprint {
         engine: f.engine,
         adapter: f.adapter,

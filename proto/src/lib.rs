@@ -3,11 +3,13 @@
 //! `v1` is the package `scatterfarm.v1` of `proto/scatterfarm/v1/farm.proto`. Every `bytes` field
 //! is `bytes::Bytes`, so large count matrices are not copied on the way through.
 //!
-//! Beside the generated code, [`auth`] holds the shared-token check both ends agree on, and
+//! Beside the generated code, [`convert`] holds every conversion between the protocol's messages
+//! and the model's types (both ends encode and check the same way), [`auth`] holds the shared-token check both ends agree on, and
 //! [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
 
 pub mod auth;
 pub mod channel;
+pub mod convert;
 
 /// Package `scatterfarm.v1`.
 pub mod v1 {

@@ -1,0 +1,437 @@
+//! `scatterfarm bench engine`: throughput of an engine on the standard medium, as JSON.
+//!
+//! The standard medium is the default geometry (16 mm, 16×16 pixels, 128 positions, 9
+//! directions) with every pixel `moderate`, 512 photons per source, seed 1.
+
+use crate::engines::{self, EngineArgs, EngineChoice};
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use cpu_time::ProcessTime;
+use scatterfarm_model::material::builtin_material;
+use scatterfarm_model::{Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[path = "bench_farm.rs"]
+mod farm;
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    pub what: BenchWhat,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchWhat {
+    /// Photons and scattering events per second (and per CPU-second) on the standard medium.
+    Engine(EngineBenchArgs),
+    /// The quality table: reconstruct the twelve Fig. 7 scenes (and any others named) and report
+    /// accuracy and cost, with the paper's search or the fast one.
+    Reconstruct(ReconstructBenchArgs),
+    /// What one coordinator can feed: full-size renders per second ingested and scored, and
+    /// its CPU per render, with replay workers (recorded counts) on loopback.
+    Farm(farm::FarmBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ReconstructBenchArgs {
+    /// Also write the JSON here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Keep each scene's outputs (report, maps) under this folder (SEED/SCENE).
+    #[arg(long)]
+    pub keep: Option<PathBuf>,
+    /// Scenes to run (default: fig7a … fig7l and phantom16).
+    #[arg(long, value_delimiter = ',')]
+    pub scenes: Option<Vec<String>>,
+    #[arg(long, default_value_t = 16)]
+    pub grid: u32,
+    #[arg(long, default_value_t = 16)]
+    pub positions: u32,
+    #[arg(long, default_value_t = 3)]
+    pub directions: u32,
+    #[arg(long, default_value_t = 1)]
+    pub permutations: u32,
+    #[arg(long, default_value_t = 8)]
+    pub iterations: u32,
+    #[arg(long, default_value_t = 512)]
+    pub photons_per_iteration: u32,
+    /// The metric (default: the search mode's).
+    #[arg(long, value_enum)]
+    pub metric: Option<scatterfarm_search::similarity::Metric>,
+    /// Job seeds, comma-separated: every scene runs once per seed (pixel accuracy moves in
+    /// whole pixels, so compare searches over several).
+    #[arg(
+        long = "seeds",
+        alias = "seed",
+        value_delimiter = ',',
+        default_value = "1"
+    )]
+    pub seeds: Vec<u64>,
+    /// Photons per source of the synthesized targets (default: the search's); give the same
+    /// value when comparing budgets, so every search sees the same targets.
+    #[arg(long)]
+    pub target_photons: Option<u32>,
+    /// The search: the fast one (the reconstructions' default), or the paper's.
+    #[arg(long, value_enum, default_value_t = scatterfarm_job::params::SearchMode::Fast)]
+    pub search: scatterfarm_job::params::SearchMode,
+    /// Any other job-file key, as KEY=VALUE in TOML (e.g. race_share=0.5,
+    /// common_random_numbers=false, level_photons=[400,200]); repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    #[command(flatten)]
+    pub engine: EngineArgs,
+}
+
+impl ReconstructBenchArgs {
+    /// The job parameters of `scene` under `seed`: the bench's flags, then every `--set`.
+    fn params(&self, scene: &str, seed: u64) -> Result<scatterfarm_job::params::JobParams> {
+        let mut keys = toml::Table::new();
+        let mut put = |k: &str, v: toml::Value| {
+            keys.insert(k.to_string(), v);
+        };
+        put("scene", scene.into());
+        // The paper searched 7i with all six materials.
+        if scene == "fig7i" {
+            let all: Vec<toml::Value> = scatterfarm_model::material::BUILTIN_MATERIALS
+                .iter()
+                .map(|(n, _)| toml::Value::from(*n))
+                .collect();
+            put("dictionary", toml::Value::Array(all));
+        }
+        put("permutations", i64::from(self.permutations).into());
+        put("iterations", i64::from(self.iterations).into());
+        put(
+            "photons_per_iteration",
+            i64::from(self.photons_per_iteration).into(),
+        );
+        put("grid", i64::from(self.grid).into());
+        put("positions", i64::from(self.positions).into());
+        put("directions", i64::from(self.directions).into());
+        put(
+            "seed",
+            i64::try_from(seed).context("--seeds: too large")?.into(),
+        );
+        put("search", toml::Value::try_from(self.search)?);
+        if let Some(m) = self.metric {
+            put("metric", toml::Value::try_from(m)?);
+        }
+        if let Some(t) = self.target_photons {
+            put("target_photons", i64::from(t).into());
+        }
+        for pair in &self.set {
+            let (k, v) = pair
+                .split_once('=')
+                .with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
+            let (k, v) = (k.trim(), v.trim());
+            // A bare word is a string (`search=fast`).
+            let value = toml::from_str::<toml::Table>(&format!("v = {v}"))
+                .ok()
+                .and_then(|mut t| t.remove("v"))
+                .unwrap_or_else(|| toml::Value::from(v));
+            put(k, value);
+        }
+        let text = toml::to_string(&keys)?;
+        scatterfarm_job::params::JobParams::from_toml(&text, std::path::Path::new("--set"))
+    }
+}
+
+/// One scene's row of the quality table.
+#[derive(Debug, Clone, Serialize)]
+pub struct QualityRow {
+    pub scene: String,
+    pub seed: u64,
+    pub pixel_accuracy: Option<f64>,
+    /// The pixel accuracy of the search's level-0 map (one material everywhere): where a
+    /// search that changed nothing after level 0 would end. On scenes that are mostly
+    /// background a noisy search can end below it.
+    pub level0_pixel_accuracy: Option<f64>,
+    pub material_sse: Option<f64>,
+    pub similarity: f64,
+    pub requests: u64,
+    pub renders: u64,
+    /// Batches that needed renders: renders / batches run at once on average.
+    pub batches: u64,
+    /// Photons the search consumed (all sources).
+    pub photons: u64,
+    /// Photons engines ran: search, target and calibration renders.
+    pub photons_simulated: u64,
+    pub wall_seconds: f64,
+}
+
+/// A scene's rows averaged over the seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct SceneSummary {
+    pub scene: String,
+    pub seeds: usize,
+    pub mean_pixel_accuracy: Option<f64>,
+    pub min_pixel_accuracy: Option<f64>,
+    pub mean_level0_pixel_accuracy: Option<f64>,
+    pub mean_material_sse: Option<f64>,
+    pub photons: u64,
+    pub photons_simulated: u64,
+    pub renders: u64,
+    pub wall_seconds: f64,
+}
+
+fn summarize(scene: &str, rows: &[&QualityRow]) -> SceneSummary {
+    let acc: Vec<f64> = rows.iter().filter_map(|r| r.pixel_accuracy).collect();
+    let level0: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| r.level0_pixel_accuracy)
+        .collect();
+    let sse: Vec<f64> = rows.iter().filter_map(|r| r.material_sse).collect();
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    SceneSummary {
+        scene: scene.to_string(),
+        seeds: rows.len(),
+        mean_pixel_accuracy: mean(&acc),
+        min_pixel_accuracy: acc.iter().copied().reduce(f64::min),
+        mean_level0_pixel_accuracy: mean(&level0),
+        mean_material_sse: mean(&sse),
+        photons: rows.iter().map(|r| r.photons).sum(),
+        photons_simulated: rows.iter().map(|r| r.photons_simulated).sum(),
+        renders: rows.iter().map(|r| r.renders).sum(),
+        wall_seconds: rows.iter().map(|r| r.wall_seconds).sum(),
+    }
+}
+
+/// Engines `bench engine` can measure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BenchEngine {
+    Cpu,
+    Gpu,
+    Auto,
+    /// CPU and GPU in one run, with their ratio.
+    All,
+}
+
+#[derive(Debug, Args)]
+pub struct EngineBenchArgs {
+    #[arg(long, value_enum, default_value_t = BenchEngine::Cpu)]
+    pub engine: BenchEngine,
+    /// Also write the JSON here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Photons per source.
+    #[arg(long, default_value_t = 512)]
+    pub photons: u32,
+    /// The GPU adapter: an index or part of a name (see `scatterfarm adapters`).
+    #[arg(long)]
+    pub adapter: Option<String>,
+}
+
+/// One engine's figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct EngineBench {
+    pub engine: String,
+    pub adapter: String,
+    pub photons: u64,
+    pub wall_seconds: f64,
+    pub cpu_seconds: f64,
+    pub photons_per_second: f64,
+    pub scatter_events_per_second: f64,
+    pub scatter_events_per_cpu_second: f64,
+}
+
+/// Renders the standard medium once (after a small warm-up) and measures it.
+pub fn measure(engine: &dyn Engine, photons: u32) -> Result<EngineBench> {
+    let geometry = Geometry::default();
+    let moderate =
+        builtin_material("moderate").context("the built-in dictionary lacks moderate")?;
+    let items = [RenderItem {
+        assignment: vec![0; geometry.pixels()],
+        seed: 1,
+    }];
+    let table = [moderate];
+    let batch = |first, count| RenderBatch {
+        geometry,
+        table: &table,
+        items: &items,
+        photons: PhotonRange { first, count },
+    };
+    // Warm-up: thread pools, shader compilation.
+    engine.render(&batch(0, 4))?;
+    let cpu0 = ProcessTime::now();
+    let wall0 = Instant::now();
+    let out = engine.render(&batch(0, photons))?;
+    let wall = wall0.elapsed().as_secs_f64();
+    let cpu = cpu0.elapsed().as_secs_f64();
+    let events: u64 = out.iter().map(|o| o.scatter_events).sum();
+    let launched = u64::from(photons) * geometry.sources() as u64;
+    let fp = engine.fingerprint();
+    Ok(EngineBench {
+        engine: fp.engine,
+        adapter: fp.adapter,
+        photons: launched,
+        wall_seconds: wall,
+        cpu_seconds: cpu,
+        photons_per_second: launched as f64 / wall,
+        scatter_events_per_second: events as f64 / wall,
+        scatter_events_per_cpu_second: events as f64 / cpu.max(1e-9),
+    })
+}
+
+pub fn run(args: BenchArgs) -> Result<()> {
+    match args.what {
+        BenchWhat::Engine(a) => run_engine(a),
+        BenchWhat::Reconstruct(a) => run_reconstruct(a),
+        BenchWhat::Farm(a) => farm::run(a),
+    }
+}
+
+fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
+    use crate::commands::reconstruct;
+    let scenes = args.scenes.clone().unwrap_or_else(|| {
+        (b'a'..=b'l')
+            .map(|c| format!("fig7{}", c as char))
+            .chain(["phantom16".to_string()])
+            .collect()
+    });
+    anyhow::ensure!(!args.seeds.is_empty(), "--seeds: give at least one seed");
+    // Every parameter set is checked before the first (long) run.
+    for scene in &scenes {
+        let params = args.params(scene, args.seeds[0])?;
+        let inputs = scatterfarm_job::inputs::Inputs::gather(&params, std::path::Path::new("."))?;
+        scatterfarm_job::plan::Plan::resolve(&params, &inputs)
+            .with_context(|| format!("scene {scene}"))?;
+    }
+    let engine = args.engine.open()?;
+    let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
+    let mut rows = Vec::new();
+    eprintln!(
+        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9}",
+        "scene",
+        "seed",
+        "accuracy",
+        "level 0",
+        "SSE",
+        "similarity",
+        "renders",
+        "photons",
+        "seconds"
+    );
+    let mut config = None;
+    for &seed in &args.seeds {
+        for scene in &scenes {
+            let out = args
+                .keep
+                .as_deref()
+                .unwrap_or(scratch.path())
+                .join(seed.to_string())
+                .join(scene);
+            let params = args.params(scene, seed)?;
+            let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)
+                .with_context(|| format!("{scene}, seed {seed}"))?;
+            let row = QualityRow {
+                scene: scene.clone(),
+                seed,
+                pixel_accuracy: report.pixel_accuracy,
+                level0_pixel_accuracy: report.levels.first().and_then(|l| l.pixel_accuracy),
+                material_sse: report.material_sse,
+                similarity: report.similarity,
+                requests: report.requests,
+                renders: report.renders,
+                batches: report.batches,
+                photons: report.photons,
+                photons_simulated: report.photons_simulated,
+                wall_seconds: report.wall_seconds,
+            };
+            eprintln!(
+                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1}",
+                row.scene,
+                seed,
+                row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+                row.level0_pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+                row.material_sse.unwrap_or(f64::NAN),
+                row.similarity,
+                row.renders,
+                row.photons,
+                row.wall_seconds
+            );
+            config.get_or_insert(report.configuration);
+            rows.push(row);
+        }
+    }
+    let summaries: Vec<SceneSummary> = scenes
+        .iter()
+        .map(|scene| {
+            let of: Vec<&QualityRow> = rows.iter().filter(|r| &r.scene == scene).collect();
+            summarize(scene, &of)
+        })
+        .collect();
+    let all: Vec<&QualityRow> = rows.iter().collect();
+    let total = summarize("total", &all);
+    eprintln!(
+        "mean pixel accuracy {:.1} % over {} runs (level 0: {:.1} %); {} photons consumed, {} simulated",
+        total.mean_pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+        rows.len(),
+        total.mean_level0_pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+        total.photons,
+        total.photons_simulated
+    );
+    let json = serde_json::json!({
+        "engine": engine.fingerprint().to_string(),
+        "geometry": { "grid": args.grid, "positions": args.positions, "directions": args.directions },
+        "permutations": args.permutations,
+        "iterations": args.iterations,
+        "photons_per_iteration": args.photons_per_iteration,
+        "search": args.search,
+        "set": args.set,
+        "seeds": args.seeds,
+        "configuration": config,
+        "runs": rows,
+        "scenes": summaries,
+        "total": total,
+    });
+    emit(&json, args.out.as_deref())
+}
+
+fn run_engine(args: EngineBenchArgs) -> Result<()> {
+    anyhow::ensure!(args.photons > 0, "--photons must be at least 1");
+    let measure_choice = |choice| -> Result<EngineBench> {
+        let adapter = if choice == EngineChoice::Cpu {
+            None
+        } else {
+            args.adapter.as_deref()
+        };
+        let engine = engines::open(choice, adapter)?;
+        let result = measure(engine.as_ref(), args.photons)?;
+        eprintln!(
+            "{} ({}): {:.2} M photons/s, {:.2} M scattering events per CPU-second",
+            result.engine,
+            result.adapter,
+            result.photons_per_second / 1e6,
+            result.scatter_events_per_cpu_second / 1e6
+        );
+        Ok(result)
+    };
+    let json = match args.engine {
+        BenchEngine::Cpu => serde_json::to_value(measure_choice(EngineChoice::Cpu)?)?,
+        BenchEngine::Gpu => serde_json::to_value(measure_choice(EngineChoice::Gpu)?)?,
+        BenchEngine::Auto => serde_json::to_value(measure_choice(EngineChoice::Auto)?)?,
+        BenchEngine::All => {
+            let cpu = measure_choice(EngineChoice::Cpu)?;
+            let gpu = measure_choice(EngineChoice::Gpu)?;
+            serde_json::json!({
+                "engines": [cpu, gpu],
+                "gpu_over_cpu_photons_per_second": gpu.photons_per_second / cpu.photons_per_second,
+                "gpu_over_cpu_scatter_events_per_cpu_second":
+                    gpu.scatter_events_per_cpu_second / cpu.scatter_events_per_cpu_second,
+            })
+        }
+    };
+    emit(&json, args.out.as_deref())
+}
+
+/// Prints the JSON on stdout and, when asked, writes it to `out` as well.
+fn emit(json: &serde_json::Value, out: Option<&std::path::Path>) -> Result<()> {
+    let text = serde_json::to_string_pretty(json)?;
+    println!("{text}");
+    if let Some(out) = out {
+        scatterfarm_job::observation::write_atomically(out, |w| Ok(w.write_all(text.as_bytes())?))?;
+        eprintln!("wrote {}", out.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,144 @@
+//! `scatterfarm coordinator`: serve the farm — workers lease render tasks from it, clients
+//! submit and follow jobs — keeping every job's progress in a data folder.
+
+use super::connect::load_token;
+use anyhow::{ensure, Context, Result};
+use clap::Args;
+use scatterfarm_coordinator::core::Settings;
+use scatterfarm_coordinator::http;
+use scatterfarm_coordinator::server::{self, ServerConfig};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+#[derive(Debug, Clone, Args)]
+pub struct CoordinatorArgs {
+    /// The address to serve gRPC on (0.0.0.0:7070 to accept workers of other hosts).
+    #[arg(long, default_value = "127.0.0.1:7070")]
+    pub listen: SocketAddr,
+    /// The data folder: job files, progress and results. A coordinator restarted on the same
+    /// folder resumes every unfinished job.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// A file whose first line is the shared token clients and workers must send (else the
+    /// SCATTERFARM_TOKEN variable; without either, no token is required).
+    #[arg(long, env = "SCATTERFARM_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// PEM certificate (chain) to serve TLS with; needs --tls-key.
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Tasks are sized so the leasing worker renders one in about this many seconds.
+    #[arg(long, default_value_t = 2.0)]
+    pub task_seconds: f64,
+    /// How often workers must send heartbeats, in milliseconds; after 3 missed ones their
+    /// tasks are leased again.
+    #[arg(long, default_value_t = 2000)]
+    pub heartbeat_ms: u64,
+    /// The shortest lease, in seconds (a lease lasts the longer of this and 5 × the task's
+    /// expected time).
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_seconds: f64,
+    /// On SIGTERM, wait this long for leased tasks to come back before stopping.
+    #[arg(long, default_value_t = 60.0)]
+    pub drain_seconds: f64,
+    /// Serve the status page (`/`) and Prometheus metrics (`/metrics`) over HTTP on this
+    /// address, e.g. 0.0.0.0:8080 (off unless given).
+    #[arg(long)]
+    pub http: Option<SocketAddr>,
+    /// Write the coordinator's URL to this file once it listens (for scripts; with --listen
+    /// on port 0 it holds the port chosen).
+    #[arg(long)]
+    pub address_file: Option<PathBuf>,
+}
+
+impl CoordinatorArgs {
+    /// The validated server configuration.
+    pub fn config(&self) -> Result<ServerConfig> {
+        ensure!(
+            self.task_seconds > 0.0 && self.task_seconds.is_finite(),
+            "--task-seconds must be positive"
+        );
+        ensure!(
+            self.heartbeat_ms >= 10,
+            "--heartbeat-ms must be at least 10"
+        );
+        ensure!(
+            self.lease_seconds > 0.0 && self.lease_seconds.is_finite(),
+            "--lease-seconds must be positive"
+        );
+        ensure!(
+            self.drain_seconds >= 0.0 && self.drain_seconds.is_finite(),
+            "--drain-seconds must be >= 0"
+        );
+        let tls = match (&self.tls_cert, &self.tls_key) {
+            (Some(c), Some(k)) => Some((
+                std::fs::read(c)
+                    .with_context(|| format!("cannot read --tls-cert {}", c.display()))?,
+                std::fs::read(k)
+                    .with_context(|| format!("cannot read --tls-key {}", k.display()))?,
+            )),
+            _ => None,
+        };
+        Ok(ServerConfig {
+            listen: self.listen,
+            data: self.data.clone(),
+            token: load_token(self.token_file.as_deref())?,
+            tls,
+            settings: Settings {
+                task_seconds: self.task_seconds,
+                heartbeat: Duration::from_millis(self.heartbeat_ms),
+                missed_heartbeats: 3,
+                min_lease: Duration::from_secs_f64(self.lease_seconds),
+            },
+            drain_timeout: Duration::from_secs_f64(self.drain_seconds),
+        })
+    }
+}
+
+pub fn run(args: CoordinatorArgs) -> Result<()> {
+    let config = args.config()?;
+    let tls = config.tls.is_some();
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?
+        .block_on(async {
+            let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+            tokio::spawn(async move {
+                server::termination().await;
+                let _ = stop_tx.send(true);
+            });
+            let (running, serving) =
+                server::start(config, server::stopped(stop_rx.clone())).await?;
+            let web = match args.http {
+                Some(addr) => {
+                    let (bound, web) =
+                        http::start(addr, running.farm.clone(), server::stopped(stop_rx)).await?;
+                    tracing::info!("status page on http://{bound}/ (metrics on /metrics)");
+                    Some(tokio::spawn(web))
+                }
+                None => None,
+            };
+            let url = format!(
+                "{}://{}",
+                if tls { "https" } else { "http" },
+                running.address
+            );
+            tracing::info!("coordinator listening on {url}");
+            if let Some(path) = &args.address_file {
+                scatterfarm_job::observation::write_atomically(path, |w| {
+                    writeln!(w, "{url}")?;
+                    Ok(())
+                })?;
+            }
+            serving.await?;
+            if let Some(web) = web {
+                web.await??;
+            }
+            tracing::info!("coordinator stopped");
+            Ok(())
+        })
+}

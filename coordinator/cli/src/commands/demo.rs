@@ -1,0 +1,203 @@
+//! `scatterfarm demo`, and `reconstruct --data`: a coordinator and a worker in this process,
+//! talking real gRPC over loopback, with the coordinator's state in a local folder — the farm
+//! on one machine. Interrupted (Ctrl-C), the same command resumes where it stood.
+
+use super::jobs::{self, client};
+use crate::engines::EngineArgs;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use scatterfarm_coordinator::core::Settings;
+use scatterfarm_coordinator::server::{self, ServerConfig};
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::params::JobParams;
+use scatterfarm_job::report::Report;
+use scatterfarm_proto::channel::Target;
+use scatterfarm_worker::{self as agent, AgentConfig};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+#[derive(Debug, Clone, Args)]
+pub struct DemoArgs {
+    /// The coordinator's data folder (run again with the same folder to resume).
+    #[arg(long, default_value = "scatterfarm-demo/data")]
+    pub data: PathBuf,
+    /// Where the result images and report go.
+    #[arg(long, default_value = "scatterfarm-demo/result")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub engine: EngineArgs,
+    /// Serve the status page and metrics on this address (port 0: any free port).
+    #[arg(long, default_value = "127.0.0.1:0")]
+    pub http: SocketAddr,
+}
+
+/// The demo's job: the 8×8 built-in scene with the default (fast) search, at a budget two CPU
+/// cores finish in under a minute and at which it finds the truth (seed 1: every pixel; 8
+/// iterations and 2 permutations, the paper search's demo budget, leave it at 93.8 %).
+pub fn demo_params() -> JobParams {
+    JobParams {
+        scene: Some("demo8".into()),
+        permutations: 3,
+        iterations: 32,
+        name: Some("demo".into()),
+        ..JobParams::default()
+    }
+}
+
+/// Finds a stored job with the same parameters and input files.
+fn existing_job(
+    farm: &scatterfarm_coordinator::service::Farm,
+    params: &JobParams,
+    inputs: &Inputs,
+) -> Option<String> {
+    let core = farm.core();
+    core.jobs
+        .values()
+        .filter(|j| j.record.params == *params)
+        .find(|j| {
+            j.record.files.len() == inputs.files.len()
+                && inputs.files.iter().all(|(name, bytes)| {
+                    core.store()
+                        .blob(&j.id, &format!("input/{name}"))
+                        .ok()
+                        .flatten()
+                        .as_deref()
+                        == Some(bytes.as_slice())
+                })
+        })
+        .map(|j| j.id.clone())
+}
+
+/// Runs `params` on an embedded coordinator (data in `data`) and worker, and writes the
+/// outputs into `out`. A job with the same parameters in `data` is resumed, not restarted.
+pub fn run_embedded(
+    params: &JobParams,
+    engine: &EngineArgs,
+    data: &Path,
+    out: &Path,
+    quiet: bool,
+    http: Option<SocketAddr>,
+) -> Result<Report> {
+    let inputs = Inputs::gather(params, Path::new("."))?;
+    scatterfarm_job::plan::Plan::resolve(params, &inputs)?;
+    let engine: Arc<dyn scatterfarm_model::Engine> = Arc::from(engine.open()?);
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?
+        .block_on(async {
+            // `stop` ends the worker and the coordinator: on Ctrl-C/SIGTERM, or when the job ends.
+            let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+            let stop_tx = Arc::new(stop_tx);
+            let interrupted = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            {
+                let (stop_tx, interrupted) = (stop_tx.clone(), interrupted.clone());
+                tokio::spawn(async move {
+                    server::termination().await;
+                    interrupted.store(true, std::sync::atomic::Ordering::SeqCst);
+                    let _ = stop_tx.send(true);
+                });
+            }
+            let until_stop = server::stopped;
+            let config = ServerConfig {
+                listen: "127.0.0.1:0".parse()?,
+                data: data.to_path_buf(),
+                token: None,
+                tls: None,
+                settings: Settings::default(),
+                drain_timeout: Duration::from_secs(30),
+            };
+            let (running, serving) = server::start(config, until_stop(stop_rx.clone())).await?;
+            let serving = tokio::spawn(serving);
+            if let Some(addr) = http {
+                let (bound, web) =
+                    scatterfarm_coordinator::http::start(addr, running.farm.clone(), until_stop(stop_rx.clone()))
+                        .await?;
+                eprintln!("status page: http://{bound}/");
+                tokio::spawn(web);
+            }
+            let target = Target {
+                url: format!("http://{}", running.address),
+                ca_pem: None,
+                token: None,
+            };
+            let agent = tokio::spawn(agent::run(
+                AgentConfig {
+                    target: target.clone(),
+                    name: Some("embedded".into()),
+                    photons_per_second: None,
+                    max_tasks: None,
+                },
+                engine,
+                until_stop(stop_rx.clone()),
+            ));
+            let mut c = client(&target).await?;
+            let id = match existing_job(&running.farm, params, &inputs) {
+                Some(id) => {
+                    tracing::info!("resuming job {id} from {}", data.display());
+                    id
+                }
+                None => jobs::submit(&mut c, params, inputs).await?,
+            };
+            let outcome = async {
+                let status = jobs::follow(&mut c, &id, quiet, Some(stop_rx.clone())).await?;
+                if status.state != scatterfarm_proto::v1::JobState::Finished as i32 {
+                    bail!("job {id} did not finish: {}", status.message);
+                }
+                jobs::fetch_result(&mut c, &id, out).await?;
+                let text = std::fs::read(out.join("report.json"))?;
+                Ok::<Report, anyhow::Error>(serde_json::from_slice(&text)?)
+            }
+            .await;
+            // Stop the worker and the coordinator: the worker returns the task in hand, the
+            // coordinator drains and flushes its store.
+            let _ = stop_tx.send(true);
+            match tokio::time::timeout(Duration::from_secs(60), agent).await {
+                Ok(Ok(Err(e))) => tracing::warn!("the embedded worker: {e}"),
+                Ok(Err(e)) => tracing::warn!("the embedded worker: {e}"),
+                Err(_) => tracing::warn!("the embedded worker did not stop in time"),
+                Ok(Ok(Ok(_))) => {}
+            }
+            match tokio::time::timeout(Duration::from_secs(60), serving).await {
+                Ok(Ok(Err(e))) => tracing::warn!("the embedded coordinator: {e:#}"),
+                Ok(Err(e)) => tracing::warn!("the embedded coordinator: {e}"),
+                Err(_) => tracing::warn!("the embedded coordinator did not stop in time"),
+                Ok(Ok(Ok(()))) => {}
+            }
+            match outcome {
+                Err(e) if interrupted.load(std::sync::atomic::Ordering::SeqCst) => Err(e.context(format!(
+                    "interrupted: the job's progress is kept in {}; run the same command again to resume",
+                    data.display()
+                ))),
+                other => other,
+            }
+        })
+}
+
+pub fn run(args: DemoArgs) -> Result<()> {
+    let params = demo_params();
+    let engine = args.engine.clone();
+    eprintln!(
+        "scatterfarm demo: reconstructing the built-in 8×8 scene `demo8` with a coordinator and a worker in this process (state in {})",
+        args.data.display()
+    );
+    let report = run_embedded(
+        &params,
+        &engine,
+        &args.data,
+        &args.out,
+        false,
+        Some(args.http),
+    )?;
+    eprintln!(
+        "done: similarity {:.4}, pixel accuracy {:.1} %, {} renders on {}.\nThe result is in {}: reconstruction.png (truth | reconstruction | wrong pixels), maps.png, materials.npy, report.json",
+        report.similarity,
+        report.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
+        report.renders,
+        report.engine,
+        args.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,135 @@
+//! `scatterfarm reconstruct`: find the material map whose simulation matches a target, and write
+//! the report, material map and pictures.
+//!
+//! Without `--data` it runs in this process against one engine. With `--data DIR` it runs the
+//! farm's embedded path (a coordinator and a worker in this process, over gRPC on loopback) and
+//! keeps its state in DIR, so an interrupted run resumes where it stood.
+
+use crate::engines::EngineArgs;
+use anyhow::{Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::outcome::{self, Summary};
+use scatterfarm_job::params::JobParams;
+use scatterfarm_job::plan::Plan;
+use scatterfarm_job::report::Report;
+use scatterfarm_model::Engine;
+use scatterfarm_search::driver::{self, Consumption};
+use scatterfarm_search::Search;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Debug, Clone, Args)]
+pub struct ReconstructArgs {
+    #[command(flatten)]
+    pub params: JobParams,
+    #[command(flatten)]
+    pub engine: EngineArgs,
+    /// The output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Keep the reconstruction's state in this folder (a coordinator data folder) and resume
+    /// from it after an interruption.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// No progress bar (for scripts and benchmarks).
+    #[arg(long, hide = true)]
+    pub quiet: bool,
+}
+
+/// Reconstructs in this process with `engine` and writes the outputs into `out`.
+pub fn run_in_process(
+    params: &JobParams,
+    engine: &dyn Engine,
+    out: &Path,
+    quiet: bool,
+) -> Result<Report> {
+    let inputs = Inputs::gather(params, Path::new("."))?;
+    let plan = Plan::resolve(params, &inputs)?;
+    let scoring = scatterfarm_job::setup::prepare(&plan, engine)?;
+    let mut search = plan.search.clone();
+    let started = Instant::now();
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(search.progress().renders_total)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{bar:30}] {pos}/{len} renders, ETA {eta} · {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let mut on_step = |s: &Search, used: &Consumption| {
+        let pr = s.progress();
+        bar.set_length(pr.renders_total);
+        bar.set_position(pr.renders_done);
+        let rate = used.photons as f64 / started.elapsed().as_secs_f64().max(1e-9);
+        bar.set_message(format!(
+            "level {}/{} · permutation {}/{} · region {}/{} · best {:.4} · {:.2} M photons/s",
+            pr.level,
+            pr.levels - 1,
+            (pr.permutation + 1).min(pr.permutations),
+            pr.permutations,
+            pr.region,
+            pr.regions,
+            pr.best_score.unwrap_or(f64::NAN),
+            rate / 1e6
+        ));
+    };
+    let (used, simulated) =
+        driver::drive(&mut search, engine, &scoring, &mut on_step, &mut |_| {})?;
+    bar.finish_and_clear();
+    let result = search
+        .result()
+        .context("the search ended without a result")?
+        .clone();
+    outcome::write_outputs(
+        out,
+        &Summary {
+            config: &plan.config,
+            truth: plan.truth.as_ref(),
+            search: &search,
+            assignment: &result.assignment,
+            similarity: result.score,
+            epsilons: &scoring.epsilons,
+            used,
+            photons_simulated: simulated + plan.setup_photons()?,
+            wall_seconds: started.elapsed().as_secs_f64(),
+            engine: engine.fingerprint().to_string(),
+            reproducible: true,
+        },
+    )
+}
+
+pub fn run(args: ReconstructArgs) -> Result<()> {
+    let report = match &args.data {
+        None => {
+            // Every check that needs no engine runs before the adapter starts.
+            let inputs = Inputs::gather(&args.params, Path::new("."))?;
+            Plan::resolve(&args.params, &inputs)?;
+            let engine = args.engine.open()?;
+            run_in_process(&args.params, engine.as_ref(), &args.out, args.quiet)?
+        }
+        Some(data) => crate::commands::demo::run_embedded(
+            &args.params,
+            &args.engine,
+            data,
+            &args.out,
+            args.quiet,
+            None,
+        )?,
+    };
+    let accuracy = report
+        .pixel_accuracy
+        .map(|a| format!(", pixel accuracy {:.1} %", a * 100.0))
+        .unwrap_or_default();
+    eprintln!(
+        "similarity {:.4}{accuracy}; {} renders in {:.1} s; wrote report.json, materials.npy, materials.json, reconstruction.png and maps.png to {}",
+        report.similarity,
+        report.renders,
+        report.wall_seconds,
+        args.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,34 @@
+//! The scatterfarm coordinator: a service that owns every reconstruction's search state, cuts it
+//! into render tasks for workers over gRPC, scores what comes back, and keeps its progress in a
+//! store. It renders nothing itself and links no engine.
+//!
+//! - [`store`]: the durable state behind a small trait (sled, with a schema version).
+//! - [`work`]: render groups cut into photon-range pieces, with partial counts summed.
+//! - [`job`]: one job: record, durable progress, its search steps as render groups.
+//! - [`core`]: jobs, workers and leases: scheduling, checks, expiry.
+//! - [`service`]: the `WorkerService` and `ClientService` gRPC implementations.
+//! - [`server`]: serving them with TLS, token, health, reflection and a graceful drain.
+//! - [`http`]: the web face: Prometheus metrics and a status page.
+
+pub mod core;
+pub mod http;
+pub mod job;
+pub mod server;
+pub mod service;
+pub mod store;
+pub mod work;
+
+/// A number that differs between processes (ids of different coordinator runs must differ; they
+/// need not be unpredictable).
+pub(crate) fn nonce() -> u32 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0),
+    );
+    h.write_u32(std::process::id());
+    h.finish() as u32
+}

@@ -1,0 +1,23 @@
+//! A scatterfarm reconstruction job, whichever driver runs it: its parameters and input files,
+//! the plan they resolve to (geometries, candidates, the fresh search, its setup renders), and
+//! its outputs (the map, pictures, `report.json`, measures against a known truth).
+//!
+//! - [`params`]: a reconstruction's parameters (`reconstruct`'s flags, a job file's keys).
+//! - [`scene_source`]: turns a command-line `SCENE` (a file or a built-in name) into a scene.
+//! - [`observation`]: observation files (float32 NPY plus JSON sidecar), written atomically.
+//! - [`inputs`]: the input files a reconstruction names, held in memory.
+//! - [`plan`]: parameters and inputs resolved; the renders needed before the search.
+//! - [`setup`]: rendering a plan's setup renders in one process.
+//! - [`report`]: the contents of `report.json`.
+//! - [`picture`]: PNG drawings of material maps and observation matrices.
+//! - [`outcome`]: a reconstruction's outputs and its measures against a known truth.
+
+pub mod inputs;
+pub mod observation;
+pub mod outcome;
+pub mod params;
+pub mod picture;
+pub mod plan;
+pub mod report;
+pub mod scene_source;
+pub mod setup;

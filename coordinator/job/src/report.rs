@@ -1,0 +1,83 @@
+//! `report.json` of a reconstruction: the measures, what it consumed, and its configuration.
+
+use crate::params::SearchMode;
+use scatterfarm_search::similarity::Metric;
+use scatterfarm_search::{Bounds, Race};
+use serde::{Deserialize, Serialize};
+
+/// The configuration, as recorded in `report.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Configuration {
+    pub scene: Option<String>,
+    pub target: Option<String>,
+    pub calibration: Option<String>,
+    pub calibration_material: String,
+    pub dictionary: Option<Vec<String>>,
+    pub random_materials: Option<u32>,
+    pub bounds: Option<Bounds>,
+    pub permutations: u32,
+    pub iterations: u32,
+    pub photons_per_iteration: u32,
+    pub target_photons: u32,
+    pub percentile: f64,
+    pub metric: Metric,
+    /// The search mode and the options it resolved to.
+    pub search: SearchMode,
+    pub common_random_numbers: bool,
+    pub early_step2: bool,
+    pub tie_z: f64,
+    /// The tiebreak's metric, its margin in standard errors, and the within-ε score from
+    /// which it decides (absent: no tiebreak).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak: Option<Metric>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak_z: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiebreak_from: Option<f64>,
+    pub level_photons: Vec<u32>,
+    pub race: Option<Race>,
+    pub rescore_photons: Option<u32>,
+    pub grid: u32,
+    pub size_mm: f64,
+    pub positions: u32,
+    pub directions: u32,
+    pub seed: u64,
+}
+
+/// One level in `report.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LevelReport {
+    pub level: u32,
+    pub similarity: f64,
+    pub pixel_accuracy: Option<f64>,
+    pub material_sse: Option<f64>,
+}
+
+/// `report.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Report {
+    pub pixel_accuracy: Option<f64>,
+    pub material_sse: Option<f64>,
+    pub similarity: f64,
+    /// ε of the finest level's budget.
+    pub epsilon: f64,
+    /// ε of every photons-per-source budget the search scored renders of.
+    pub epsilons: std::collections::BTreeMap<u32, f64>,
+    /// Render requests of the search (answered by a render or by the cache).
+    pub requests: u64,
+    /// Search renders and the photons they launched (all sources).
+    pub renders: u64,
+    /// Batches of the search's requests that needed renders (`renders / batches` renders can
+    /// run at once, on average).
+    pub batches: u64,
+    pub photons: u64,
+    /// Photons the engine actually ran: search, target and calibration renders.
+    pub photons_simulated: u64,
+    pub wall_seconds: f64,
+    pub engine: String,
+    pub seed: u64,
+    /// Whether the same seed and engine reproduce this result (always, in one process).
+    pub reproducible: bool,
+    pub configuration: Configuration,
+    pub levels: Vec<LevelReport>,
+}

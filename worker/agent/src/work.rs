@@ -1,0 +1,362 @@
+//! The lease loop: lease a task, render it on a blocking thread, return its counts (or give it
+//! back), until shutdown or `max_tasks`.
+
+use super::cache::GeometryCache;
+use super::retry::{describe, is_auth_failure, is_transient, within, Backoff, Stop};
+use super::session::{Connector, Session};
+use super::{AgentError, AgentSummary};
+use scatterfarm_model::engine::{Engine, RenderOutput};
+use scatterfarm_proto::convert::{decode_task, outputs_to_proto, ConvertError, RenderTask};
+use scatterfarm_proto::v1::{self, CompleteRequest, LeaseRequest, ReleaseRequest, Task};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tonic::Code;
+
+/// How long a Lease or Release may take.
+const CALL_TIMEOUT: Duration = Duration::from_secs(60);
+/// How long a Complete (megabytes of counts) may take.
+const COMPLETE_TIMEOUT: Duration = Duration::from_secs(600);
+/// The pause when the coordinator has no task and names no `retry_after_ms`.
+const DEFAULT_RETRY_AFTER: Duration = Duration::from_secs(1);
+/// Returning a result is retried at least this long, even past the lease deadline.
+const MIN_COMPLETE_PATIENCE: Duration = Duration::from_secs(30);
+/// …and this long when the lease names no deadline.
+const NO_DEADLINE_PATIENCE: Duration = Duration::from_secs(600);
+/// After shutdown is asked for, a result is retried at most this long.
+const SHUTDOWN_PATIENCE: Duration = Duration::from_secs(30);
+
+/// A task's identity, for its Complete, its Release and the log.
+#[derive(Debug, Clone)]
+struct TaskRef {
+    job_id: String,
+    task_id: u64,
+    attempt: u32,
+    deadline_unix_ms: u64,
+}
+
+impl std::fmt::Display for TaskRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "job {} task {} attempt {}",
+            self.job_id, self.task_id, self.attempt
+        )
+    }
+}
+
+/// What became of a leased task.
+enum Outcome {
+    Completed {
+        photons: u64,
+    },
+    /// Given back, or refused: nothing to count.
+    NotCompleted,
+    /// The engine or the task was at fault: pause before leasing again.
+    Failed,
+}
+
+pub(crate) struct Worker {
+    pub engine: Arc<dyn Engine>,
+    pub connector: Connector,
+    pub stop: Stop,
+    pub max_tasks: Option<u64>,
+}
+
+impl Worker {
+    /// Registers, then leases and renders until shutdown or `max_tasks` completed tasks.
+    pub async fn run(mut self) -> Result<AgentSummary, AgentError> {
+        let mut summary = AgentSummary::default();
+        let Some(mut session) = self.connector.session().await? else {
+            return Ok(summary);
+        };
+        let mut cache = GeometryCache::new(GeometryCache::CAPACITY);
+        let mut backoff = Backoff::new();
+        let mut failures = Backoff::new();
+        loop {
+            if self.stop.requested() || self.max_tasks.is_some_and(|m| summary.tasks_completed >= m)
+            {
+                return Ok(summary);
+            }
+            if session.is_forgotten() {
+                match self.connector.session().await? {
+                    Some(s) => session = s,
+                    None => return Ok(summary),
+                }
+                continue;
+            }
+            let request = LeaseRequest {
+                worker_id: session.worker_id.clone(),
+                cached_jobs: cache.jobs(),
+            };
+            let task = match within(CALL_TIMEOUT, session.client.lease(request)).await {
+                Ok(response) => {
+                    backoff.reset();
+                    match response.task {
+                        Some(task) => task,
+                        None => {
+                            tracing::debug!(
+                                "no task ({}); asking again in {} ms",
+                                if response.reason.is_empty() {
+                                    "no reason given"
+                                } else {
+                                    &response.reason
+                                },
+                                response.retry_after_ms
+                            );
+                            let delay = match response.retry_after_ms {
+                                0 => DEFAULT_RETRY_AFTER,
+                                ms => Duration::from_millis(u64::from(ms)),
+                            };
+                            self.stop.sleep(delay).await;
+                            continue;
+                        }
+                    }
+                }
+                Err(status) if status.code() == Code::NotFound => {
+                    tracing::info!(
+                        "the coordinator at {} no longer knows worker {} ({}); registering again",
+                        self.connector.url(),
+                        session.worker_id,
+                        status.message()
+                    );
+                    match self.connector.session().await? {
+                        Some(s) => session = s,
+                        None => return Ok(summary),
+                    }
+                    continue;
+                }
+                Err(status) if is_auth_failure(&status) => {
+                    return Err(self.unauthenticated(&status));
+                }
+                Err(status) => {
+                    let delay = backoff.next_delay();
+                    tracing::warn!(
+                        "cannot lease from the coordinator at {}: {}; retrying in {:.1} s",
+                        self.connector.url(),
+                        describe(&status),
+                        delay.as_secs_f64()
+                    );
+                    self.stop.sleep(delay).await;
+                    continue;
+                }
+            };
+            match self.handle(&mut session, &mut cache, task).await? {
+                Outcome::Completed { photons } => {
+                    summary.tasks_completed += 1;
+                    summary.photons += photons;
+                    failures.reset();
+                }
+                Outcome::NotCompleted => {}
+                Outcome::Failed => {
+                    self.stop.sleep(failures.next_delay()).await;
+                }
+            }
+        }
+    }
+
+    fn unauthenticated(&self, status: &tonic::Status) -> AgentError {
+        AgentError::Unauthenticated {
+            url: self.connector.url().to_string(),
+            message: status.message().to_string(),
+        }
+    }
+
+    /// Renders one leased task and returns its counts, or gives it back.
+    async fn handle(
+        &mut self,
+        session: &mut Session,
+        cache: &mut GeometryCache,
+        task: Task,
+    ) -> Result<Outcome, AgentError> {
+        let task_ref = TaskRef {
+            job_id: task.job_id.clone(),
+            task_id: task.task_id,
+            attempt: task.attempt,
+            deadline_unix_ms: task.lease_deadline_unix_ms,
+        };
+        let render = match cache
+            .resolve(&task)
+            .and_then(|geometry| decode_task(&task, geometry))
+        {
+            Ok(render) => render,
+            Err(e) => {
+                tracing::warn!("cannot render {task_ref}: {e}; giving it back");
+                self.release(session, &task_ref, format!("protocol error: {e}"))
+                    .await?;
+                return Ok(Outcome::Failed);
+            }
+        };
+        drop(task);
+        tracing::debug!(
+            "leased {task_ref}: {} assignments, photons {}..{}, grid {}, {} sources",
+            render.items.len(),
+            render.photons.first,
+            render.photons.end(),
+            render.geometry.grid,
+            render.geometry.sources()
+        );
+        let photons = render.photons_launched();
+        let (render, result, seconds) = self.render(render).await;
+        let encoded = result.and_then(|outputs| {
+            outputs_to_proto(&render, &outputs).map_err(|e: ConvertError| e.to_string())
+        });
+        let (counts, scatter_events) = match encoded {
+            Ok(encoded) => encoded,
+            Err(e) => {
+                tracing::warn!("the engine failed on {task_ref}: {e}; giving it back");
+                self.release(session, &task_ref, format!("engine failed: {e}"))
+                    .await?;
+                return Ok(Outcome::Failed);
+            }
+        };
+        tracing::debug!(
+            "rendered {task_ref} in {seconds:.3} s ({:.3e} photons/s)",
+            photons as f64 / seconds.max(1e-9)
+        );
+        let request = CompleteRequest {
+            worker_id: session.worker_id.clone(),
+            job_id: task_ref.job_id.clone(),
+            task_id: task_ref.task_id,
+            attempt: task_ref.attempt,
+            counts,
+            scatter_events,
+            render_seconds: seconds,
+        };
+        Ok(if self.complete(session, &task_ref, request).await? {
+            Outcome::Completed { photons }
+        } else {
+            Outcome::NotCompleted
+        })
+    }
+
+    /// Runs the engine on a blocking thread (to the end, shutdown or not): the task back, the
+    /// outputs or the error text, and the wall seconds.
+    async fn render(
+        &self,
+        render: RenderTask,
+    ) -> (Arc<RenderTask>, Result<Vec<RenderOutput>, String>, f64) {
+        let render = Arc::new(render);
+        let engine = self.engine.clone();
+        let job = render.clone();
+        let start = Instant::now();
+        let joined = tokio::task::spawn_blocking(move || {
+            engine.render(&job.batch()).map_err(|e| e.to_string())
+        })
+        .await;
+        let seconds = start.elapsed().as_secs_f64();
+        let result = joined.unwrap_or_else(|e| Err(format!("the engine panicked: {e}")));
+        (render, result, seconds)
+    }
+
+    /// Returns a result: true when the coordinator took it. Transient failures are retried with
+    /// backoff (for a while); a refusal (a stale attempt, say) is logged and dropped.
+    async fn complete(
+        &mut self,
+        session: &mut Session,
+        task: &TaskRef,
+        mut request: CompleteRequest,
+    ) -> Result<bool, AgentError> {
+        let started = Instant::now();
+        let patience = complete_patience(task.deadline_unix_ms);
+        let mut backoff = Backoff::new();
+        let mut registered_again = false;
+        loop {
+            request.worker_id = session.worker_id.clone();
+            let status =
+                match within(COMPLETE_TIMEOUT, session.client.complete(request.clone())).await {
+                    Ok(_) => {
+                        tracing::debug!("returned {task}");
+                        return Ok(true);
+                    }
+                    Err(status) => status,
+                };
+            if is_auth_failure(&status) {
+                return Err(self.unauthenticated(&status));
+            }
+            if status.code() == Code::NotFound && !registered_again {
+                tracing::info!(
+                    "the coordinator at {} does not know worker {} ({}); registering again to return {task}",
+                    self.connector.url(),
+                    session.worker_id,
+                    status.message()
+                );
+                registered_again = true;
+                match self.connector.session().await? {
+                    Some(s) => *session = s,
+                    None => return Ok(false),
+                }
+                continue;
+            }
+            let limit = if self.stop.requested() {
+                patience.min(SHUTDOWN_PATIENCE)
+            } else {
+                patience
+            };
+            if !is_transient(&status) || started.elapsed() >= limit {
+                tracing::warn!(
+                    "the coordinator at {} did not take the result of {task}: {}",
+                    self.connector.url(),
+                    describe(&status)
+                );
+                return Ok(false);
+            }
+            let delay = backoff.next_delay();
+            tracing::warn!(
+                "cannot return {task} to the coordinator at {}: {}; retrying in {:.1} s",
+                self.connector.url(),
+                describe(&status),
+                delay.as_secs_f64()
+            );
+            tokio::time::sleep(delay).await;
+        }
+    }
+
+    /// Gives a task back with `reason`; a few tries, then the lease deadline does it for us.
+    async fn release(
+        &mut self,
+        session: &mut Session,
+        task: &TaskRef,
+        reason: String,
+    ) -> Result<(), AgentError> {
+        let request = ReleaseRequest {
+            worker_id: session.worker_id.clone(),
+            job_id: task.job_id.clone(),
+            task_id: task.task_id,
+            attempt: task.attempt,
+            reason,
+        };
+        let mut backoff = Backoff::new();
+        for attempt in 1..=3 {
+            match within(CALL_TIMEOUT, session.client.release(request.clone())).await {
+                Ok(v1::ReleaseResponse {}) => return Ok(()),
+                Err(status) if is_auth_failure(&status) => {
+                    return Err(self.unauthenticated(&status))
+                }
+                Err(status) if is_transient(&status) && attempt < 3 => {
+                    tokio::time::sleep(backoff.next_delay()).await;
+                }
+                Err(status) => {
+                    tracing::warn!(
+                        "cannot give {task} back to the coordinator at {}: {}",
+                        self.connector.url(),
+                        describe(&status)
+                    );
+                    return Ok(());
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How long to keep retrying a result: until the lease deadline, and at least a little while.
+fn complete_patience(deadline_unix_ms: u64) -> Duration {
+    if deadline_unix_ms == 0 {
+        return NO_DEADLINE_PATIENCE;
+    }
+    let now_ms = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0);
+    Duration::from_millis(deadline_unix_ms.saturating_sub(now_ms)).max(MIN_COMPLETE_PATIENCE)
+}
