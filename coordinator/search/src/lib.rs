@@ -5,6 +5,8 @@
 //! - [`machine`]: the search state machine (`docs/model.md`, "Search"): requests out, scores in.
 //! - [`seeds`]: the seed streams every random use derives from the job seed.
 //! - [`similarity`]: similarity metrics and the calibration of ε.
+//! - [`likelihood`]: the deviance score and paired comparisons on common random numbers.
+//! - [`refine`]: the pixel-level refinement stage after the quad-tree search.
 //! - [`prefixes`]: racing's first-stage counts, which a contender's full render extends.
 //! - [`identity`]: a render's identity, under which its score is cached.
 //! - [`steps`]: the one step driver: cached scores, missing renders grouped, consumption.
@@ -14,8 +16,10 @@
 pub mod chunks;
 pub mod driver;
 pub mod identity;
+pub mod likelihood;
 pub mod machine;
 pub mod prefixes;
+pub mod refine;
 pub mod seeds;
 pub mod similarity;
 pub mod steps;

@@ -23,6 +23,10 @@ pub enum Stream {
     LevelRender(u32),
     /// The re-scoring of level `ℓ`'s finalists (a seed no search render of the level uses).
     Rescore(u32),
+    /// Every render of refinement sweep `k` (the current map and each change of it).
+    RefineSweep(u32),
+    /// The confirmation renders after refinement sweep `k`.
+    RefineConfirm(u32),
 }
 
 impl Stream {
@@ -35,6 +39,8 @@ impl Stream {
             Stream::Render(n) => ("render", *n),
             Stream::LevelRender(l) => ("render-level", u64::from(*l)),
             Stream::Rescore(l) => ("rescore", u64::from(*l)),
+            Stream::RefineSweep(k) => ("refine-sweep", u64::from(*k)),
+            Stream::RefineConfirm(k) => ("refine-confirm", u64::from(*k)),
         }
     }
 }
