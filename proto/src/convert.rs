@@ -3,12 +3,16 @@
 //!
 //! A leased [`v1::Task`] becomes a [`RenderTask`] (geometry, material table, items, photon range)
 //! or a typed [`ConvertError`]; an engine's outputs become one [`v1::CountMatrix`] per assignment
-//! (little-endian `u32` counts). The reverse directions are here too, so both ends of the
-//! protocol encode the same way.
+//! (little-endian `u32` counts). The reverse directions are here too (the coordinator builds
+//! tasks with [`task_to_proto`] and decodes results with [`results_from_proto`]), so both ends of
+//! the protocol encode and check the same way. Engine fingerprints cross the wire through
+//! [`fingerprint_to_proto`] and [`fingerprint_from_proto`].
 
 use crate::v1;
 use bytes::Bytes;
-use scatterfarm_model::engine::{CountMatrix, PhotonRange, RenderBatch, RenderItem, RenderOutput};
+use scatterfarm_model::engine::{
+    CountMatrix, EngineFingerprint, PhotonRange, RenderBatch, RenderItem, RenderOutput,
+};
 use scatterfarm_model::geometry::{Geometry, GeometryError};
 use scatterfarm_model::material::{Material, MaterialError};
 use thiserror::Error;
@@ -58,6 +62,11 @@ pub enum ConvertError {
         bins: usize,
         bytes: usize,
     },
+    #[error("result {item}: {source}")]
+    Result {
+        item: usize,
+        source: Box<ConvertError>,
+    },
 }
 
 /// A leased task, decoded and validated: everything one engine call needs.
@@ -86,6 +95,58 @@ impl RenderTask {
     }
 }
 
+/// Who a task is for and how long its lease lasts: the parts of a [`v1::Task`] that are not
+/// the render itself.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TaskLease {
+    pub job_id: String,
+    pub task_id: u64,
+    pub attempt: u32,
+    pub lease_deadline_unix_ms: u64,
+}
+
+/// The wire task for `task` under `lease`. `geometry_is_job_geometry` says the geometry is the
+/// job's (workers cache it); `send_geometry` is false when the worker already holds it.
+pub fn task_to_proto(
+    lease: TaskLease,
+    task: &RenderTask,
+    geometry_is_job_geometry: bool,
+    send_geometry: bool,
+) -> v1::Task {
+    v1::Task {
+        job_id: lease.job_id,
+        task_id: lease.task_id,
+        attempt: lease.attempt,
+        lease_deadline_unix_ms: lease.lease_deadline_unix_ms,
+        geometry: send_geometry.then(|| geometry_to_proto(&task.geometry)),
+        geometry_is_job_geometry,
+        table: task.table.iter().map(material_to_proto).collect(),
+        assignments: task.items.iter().map(assignment_to_proto).collect(),
+        photon_first: task.photons.first,
+        photon_count: task.photons.count,
+    }
+}
+
+/// An engine fingerprint as the wire carries it.
+pub fn fingerprint_to_proto(f: &EngineFingerprint) -> v1::EngineFingerprint {
+    v1::EngineFingerprint {
+        engine: f.engine.clone(),
+        adapter: f.adapter.clone(),
+        driver: f.driver.clone(),
+        version: f.version.clone(),
+    }
+}
+
+/// An engine fingerprint from the wire.
+pub fn fingerprint_from_proto(f: v1::EngineFingerprint) -> EngineFingerprint {
+    EngineFingerprint {
+        engine: f.engine,
+        adapter: f.adapter,
+        driver: f.driver,
+        version: f.version,
+    }
+}
+
 /// A validated geometry from the wire.
 pub fn geometry_from_proto(g: &v1::Geometry) -> Result<Geometry, ConvertError> {
     Ok(Geometry::new(g.size_mm, g.grid, g.positions, g.directions)?)
@@ -100,7 +161,8 @@ pub fn geometry_to_proto(g: &Geometry) -> v1::Geometry {
     }
 }
 
-/// Material `index` of a table from the wire: `opaque` makes σa infinite whatever it says.
+/// Material `index` of a table from the wire: `opaque` makes σa infinite whatever it says (the
+/// model's opaque material is σa = +∞, which [`material_to_proto`] sends as it is).
 pub fn material_from_proto(index: usize, m: &v1::Material) -> Result<Material, ConvertError> {
     let sigma_a = if m.opaque { f64::INFINITY } else { m.sigma_a };
     Material::new(m.sigma_s, sigma_a, m.g)
@@ -242,6 +304,21 @@ pub fn counts_from_proto(m: &v1::CountMatrix) -> Result<CountMatrix, ConvertErro
     })
 }
 
+/// A result's count matrices from the wire, in order, each checked by [`counts_from_proto`];
+/// an error names the first malformed one.
+pub fn results_from_proto(counts: &[v1::CountMatrix]) -> Result<Vec<CountMatrix>, ConvertError> {
+    counts
+        .iter()
+        .enumerate()
+        .map(|(item, m)| {
+            counts_from_proto(m).map_err(|e| ConvertError::Result {
+                item,
+                source: Box::new(e),
+            })
+        })
+        .collect()
+}
+
 /// The engine's outputs for `task` as the wire's count matrices (one per assignment, in order)
 /// and the total scattering events; checks the engine kept its side of the contract.
 pub fn outputs_to_proto(
@@ -352,6 +429,76 @@ mod tests {
         let wire = material_to_proto(&Material::OPAQUE);
         assert!(wire.opaque);
         assert_eq!(material_from_proto(0, &wire).unwrap(), Material::OPAQUE);
+    }
+
+    #[test]
+    fn builtin_materials_round_trip_bit_exactly() {
+        use scatterfarm_model::material::BUILTIN_MATERIALS;
+        for (name, m) in BUILTIN_MATERIALS {
+            let back = material_from_proto(0, &material_to_proto(&m)).unwrap();
+            assert_eq!(back.sigma_s.to_bits(), m.sigma_s.to_bits(), "{name}: σs");
+            assert_eq!(back.sigma_a.to_bits(), m.sigma_a.to_bits(), "{name}: σa");
+            assert_eq!(back.g.to_bits(), m.g.to_bits(), "{name}: g");
+            assert_eq!(back.is_opaque(), m.is_opaque(), "{name}: opaque");
+        }
+    }
+
+    #[test]
+    fn task_to_proto_round_trips() {
+        let r = decode(&task()).unwrap();
+        let lease = TaskLease {
+            job_id: "job".into(),
+            task_id: 3,
+            attempt: 1,
+            lease_deadline_unix_ms: 0,
+        };
+        let wire = task_to_proto(lease.clone(), &r, true, true);
+        assert_eq!(wire, task());
+        assert_eq!(decode(&wire).unwrap(), r);
+        let cached = task_to_proto(lease, &r, true, false);
+        assert!(cached.geometry.is_none());
+        assert!(cached.geometry_is_job_geometry);
+        assert_eq!(decode_task(&cached, geometry()).unwrap(), r);
+    }
+
+    #[test]
+    fn fingerprints_round_trip() {
+        let f = EngineFingerprint {
+            engine: "gpu".into(),
+            adapter: "H200".into(),
+            driver: "550.1".into(),
+            version: "3".into(),
+        };
+        assert_eq!(fingerprint_from_proto(fingerprint_to_proto(&f)), f);
+    }
+
+    #[test]
+    fn results_name_the_malformed_matrix() {
+        let m = CountMatrix {
+            sources: 1,
+            bins: 2,
+            counts: vec![3, 4],
+        };
+        let good = counts_to_proto(&m);
+        let bad = v1::CountMatrix {
+            counts_le_u32: good.counts_le_u32.slice(..7),
+            ..good.clone()
+        };
+        assert_eq!(
+            results_from_proto(&[good.clone(), good.clone()]).unwrap(),
+            vec![m.clone(), m]
+        );
+        assert_eq!(
+            results_from_proto(&[good, bad]),
+            Err(ConvertError::Result {
+                item: 1,
+                source: Box::new(ConvertError::CountBytes {
+                    sources: 1,
+                    bins: 2,
+                    bytes: 7
+                })
+            })
+        );
     }
 
     #[test]

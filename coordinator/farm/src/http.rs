@@ -2,11 +2,12 @@
 //! (jobs with progress and ETA, workers with engine, throughput and last heartbeat, each job's
 //! current best map), and `/jobs/{id}/map.png`, the map itself.
 //!
-//! Everything is read from one snapshot of the [`Core`] taken under its lock; pages and metrics
+//! Everything is read from one snapshot of the [`Scheduler`] taken under its lock; pages and metrics
 //! are built after the lock is released.
 
-use super::core::Core;
-use super::service::{duration_text, job_status, state_name, Farm};
+use super::scheduler::Scheduler;
+use super::service::Farm;
+use super::status::{duration_text, job_status, state_name};
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
 use axum::http::{header, StatusCode};
@@ -63,12 +64,12 @@ struct Web {
     rates: Arc<Mutex<Rates>>,
 }
 
-/// What a page or a scrape shows, copied out of the core.
+/// What a page or a scrape shows, copied out of the scheduler.
 struct Snapshot {
     jobs: Vec<pb::JobStatus>,
     workers: Vec<WorkerRow>,
     tasks_leased: usize,
-    counters: super::core::Counters,
+    counters: super::scheduler::Counters,
 }
 
 struct WorkerRow {
@@ -82,9 +83,9 @@ struct WorkerRow {
     heartbeat_ago: f64,
 }
 
-fn snapshot(core: &Core) -> Snapshot {
+fn snapshot(scheduler: &Scheduler) -> Snapshot {
     let now = Instant::now();
-    let mut workers: Vec<WorkerRow> = core
+    let mut workers: Vec<WorkerRow> = scheduler
         .workers
         .values()
         .map(|w| WorkerRow {
@@ -93,17 +94,25 @@ fn snapshot(core: &Core) -> Snapshot {
             engine: w.fingerprint_key.clone(),
             adapter: w.fingerprint.adapter.clone(),
             photons_per_second: w.photons_per_second,
-            leased: core.leases.values().filter(|l| l.worker == w.id).count(),
+            leased: scheduler
+                .leases
+                .values()
+                .filter(|l| l.worker == w.id)
+                .count(),
             completed: w.tasks_completed,
             heartbeat_ago: now.duration_since(w.last_seen).as_secs_f64(),
         })
         .collect();
     workers.sort_by(|a, b| a.id.cmp(&b.id));
     Snapshot {
-        jobs: core.jobs.values().map(|j| job_status(core, j)).collect(),
+        jobs: scheduler
+            .jobs
+            .values()
+            .map(|j| job_status(scheduler, j))
+            .collect(),
         workers,
-        tasks_leased: core.leases.len(),
-        counters: core.counters,
+        tasks_leased: scheduler.leases.len(),
+        counters: scheduler.counters,
     }
 }
 
@@ -236,7 +245,7 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
 }
 
 async fn metrics(State(web): State<Web>) -> Response {
-    let snap = snapshot(&web.farm.core());
+    let snap = snapshot(&web.farm.scheduler());
     let rates = web
         .rates
         .lock()
@@ -355,7 +364,7 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
 }
 
 async fn index(State(web): State<Web>) -> Html<String> {
-    let snap = snapshot(&web.farm.core());
+    let snap = snapshot(&web.farm.scheduler());
     let rates = web
         .rates
         .lock()
@@ -366,8 +375,8 @@ async fn index(State(web): State<Web>) -> Html<String> {
 
 async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
     let picture = {
-        let core = web.farm.core();
-        let Some(job) = core.jobs.get(&id) else {
+        let scheduler = web.farm.scheduler();
+        let Some(job) = scheduler.jobs.get(&id) else {
             return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
         };
         let search = &job.progress.search;
@@ -411,7 +420,7 @@ pub async fn start(
             let mut tick = tokio::time::interval(Duration::from_secs(1));
             loop {
                 tick.tick().await;
-                let c = farm.core().counters;
+                let c = farm.scheduler().counters;
                 if let Ok(mut r) = rates.lock() {
                     r.push(c.renders_completed, c.photons);
                 }
@@ -460,7 +469,7 @@ mod tests {
             }],
             workers: Vec::new(),
             tasks_leased: 2,
-            counters: super::super::core::Counters {
+            counters: crate::scheduler::Counters {
                 leases_expired: 1,
                 results_refused: 3,
                 results_accepted: 7,

@@ -5,16 +5,22 @@
 //! - [`store`]: the durable state behind a small trait (sled, with a schema version).
 //! - [`work`]: render groups cut into photon-range pieces, with partial counts summed.
 //! - [`job`]: one job: record, durable progress, its search steps as render groups.
-//! - [`core`]: jobs, workers and leases: scheduling, checks, expiry.
-//! - [`service`]: the `WorkerService` and `ClientService` gRPC implementations.
+//! - [`scheduler`]: the [`scheduler::Scheduler`]: jobs, the worker registry and leases, one file
+//!   per concern (client requests, registry, leasing, lease sizing, result checks, expiry).
+//! - [`service`]: the [`service::Farm`] both services share, and the `WorkerService` and
+//!   `ClientService` gRPC implementations (one file each); every message ⇄ model conversion is
+//!   `scatterfarm_proto::convert`'s.
+//! - [`status`]: the job-status view clients, the CLI and the status page share, with the one
+//!   name of each job state.
 //! - [`server`]: serving them with TLS, token, health, reflection and a graceful drain.
 //! - [`http`]: the web face: Prometheus metrics and a status page.
 
-pub mod core;
 pub mod http;
 pub mod job;
+pub mod scheduler;
 pub mod server;
 pub mod service;
+pub mod status;
 pub mod store;
 pub mod work;
 

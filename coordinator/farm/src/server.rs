@@ -1,7 +1,7 @@
 //! Serving a coordinator: the listening socket, TLS, the token check, gRPC health and
 //! reflection, the lease sweeper, and a graceful drain when told to stop.
 
-use super::core::{Core, Settings};
+use super::scheduler::{Scheduler, Settings};
 use super::service::{ClientApi, Farm, WorkerApi};
 use super::store::SledStore;
 use anyhow::{Context, Result};
@@ -47,8 +47,8 @@ pub async fn start(
     std::fs::create_dir_all(&config.data)
         .with_context(|| format!("cannot create the data folder {}", config.data.display()))?;
     let store = Arc::new(SledStore::open(&config.data)?);
-    let core = Core::open(store, config.settings)?;
-    let farm = Farm::new(core);
+    let scheduler = Scheduler::open(store, config.settings)?;
+    let farm = Farm::new(scheduler);
 
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
@@ -100,7 +100,7 @@ pub async fn start(
             let mut tick = tokio::time::interval(Duration::from_millis(500));
             loop {
                 tick.tick().await;
-                farm.core().sweep(Instant::now());
+                farm.scheduler().sweep(Instant::now());
                 farm.work.notify_waiters();
             }
         })
@@ -113,7 +113,7 @@ pub async fn start(
         async move {
             shutdown.await;
             tracing::info!("draining: no new tasks; waiting for leased tasks to come back");
-            farm.core().draining = true;
+            farm.scheduler().draining = true;
             health
                 .set_not_serving::<WorkerServiceServer<WorkerApi>>()
                 .await;
@@ -124,16 +124,16 @@ pub async fn start(
                 .set_service_status("", tonic_health::ServingStatus::NotServing)
                 .await;
             let until = Instant::now() + timeout;
-            while !farm.core().leases.is_empty() && Instant::now() < until {
+            while !farm.scheduler().leases.is_empty() && Instant::now() < until {
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
-            let left = farm.core().leases.len();
+            let left = farm.scheduler().leases.len();
             if left > 0 {
                 tracing::warn!(
                     "{left} leased tasks did not come back; they are re-rendered on restart"
                 );
             }
-            if let Err(e) = farm.core().store().flush() {
+            if let Err(e) = farm.scheduler().store().flush() {
                 tracing::error!("cannot flush the store: {e}");
             }
         }

@@ -26,6 +26,7 @@ mod tests;
 
 use scatterfarm_model::engine::{Engine, EngineError};
 use scatterfarm_proto::channel::{ConnectError, Target};
+use scatterfarm_proto::convert::fingerprint_to_proto;
 use scatterfarm_proto::v1;
 use std::future::Future;
 use std::sync::Arc;
@@ -119,21 +120,12 @@ async fn start(
         .unwrap_or_else(|| default_name(&fingerprint));
     let request = v1::RegisterRequest {
         protocol: Some(v1::PROTOCOL),
-        fingerprint: Some(v1::EngineFingerprint {
-            engine: fingerprint.engine.clone(),
-            adapter: fingerprint.adapter.clone(),
-            driver: fingerprint.driver.clone(),
-            version: fingerprint.version.clone(),
-        }),
+        fingerprint: Some(fingerprint_to_proto(&fingerprint)),
         photons_per_second,
         name,
     };
-    let connector = session::Connector::new(
-        config.target,
-        request,
-        fingerprint.to_string(),
-        stop.clone(),
-    );
+    let connector =
+        session::Connector::new(config.target, request, fingerprint.key(), stop.clone());
     work::Worker {
         engine,
         connector,

@@ -23,6 +23,24 @@ pub struct EngineFingerprint {
     pub version: String,
 }
 
+impl EngineFingerprint {
+    /// The canonical key of the fingerprint, `engine/adapter/driver/version`: what jobs are
+    /// pinned to and renders are identified with. [`fmt::Display`] writes the same text.
+    pub fn key(&self) -> String {
+        self.to_string()
+    }
+
+    /// The fingerprint of counts that replay this engine's under another name: the version
+    /// becomes `version+tag`, so such counts never mix with the engine's own.
+    pub fn tagged(self, tag: &str) -> Self {
+        EngineFingerprint {
+            version: format!("{}+{tag}", self.version),
+            ..self
+        }
+    }
+}
+
+/// Writes the canonical key (see [`EngineFingerprint::key`]).
 impl fmt::Display for EngineFingerprint {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(

@@ -372,7 +372,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         total.photons_simulated
     );
     let json = serde_json::json!({
-        "engine": engine.fingerprint().to_string(),
+        "engine": engine.fingerprint().key(),
         "geometry": { "grid": args.grid, "positions": args.positions, "directions": args.directions },
         "permutations": args.permutations,
         "iterations": args.iterations,

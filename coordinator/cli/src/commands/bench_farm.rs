@@ -403,16 +403,13 @@ async fn replay_worker(
 ) -> Result<()> {
     let channel = target.connect().await?;
     let mut client = worker_client(channel, zstd);
-    let fingerprint = engine.fingerprint();
+    let fingerprint = engine.fingerprint().tagged("replay");
     let registered = client
         .register(pb::RegisterRequest {
             protocol: Some(pb::PROTOCOL),
-            fingerprint: Some(pb::EngineFingerprint {
-                engine: fingerprint.engine,
-                adapter: fingerprint.adapter,
-                driver: fingerprint.driver,
-                version: format!("{}+replay", fingerprint.version),
-            }),
+            fingerprint: Some(scatterfarm_proto::convert::fingerprint_to_proto(
+                &fingerprint,
+            )),
             photons_per_second: REPLAY_PHOTONS_PER_SECOND,
             name: format!("bench-replay-{index}"),
         })

@@ -4,8 +4,8 @@
 use super::connect::load_token;
 use anyhow::{ensure, Context, Result};
 use clap::Args;
-use scatterfarm_coordinator::core::Settings;
 use scatterfarm_coordinator::http;
+use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use std::net::SocketAddr;
 use std::path::PathBuf;

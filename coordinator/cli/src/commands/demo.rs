@@ -6,7 +6,7 @@ use super::jobs::{self, client};
 use crate::engines::EngineArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use scatterfarm_coordinator::core::Settings;
+use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::params::JobParams;
@@ -52,7 +52,7 @@ fn existing_job(
     params: &JobParams,
     inputs: &Inputs,
 ) -> Option<String> {
-    let core = farm.core();
+    let core = farm.scheduler();
     core.jobs
         .values()
         .filter(|j| j.record.params == *params)

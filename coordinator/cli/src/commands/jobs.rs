@@ -5,11 +5,12 @@ use super::connect::ConnectArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use scatterfarm_coordinator::service::{duration_text, state_name};
+use scatterfarm_coordinator::status::{duration_text, state_name};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::params::JobParams;
 use scatterfarm_job::plan::Plan;
 use scatterfarm_proto::channel::{Authed, Target};
+use scatterfarm_proto::convert::fingerprint_from_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::client_service_client::ClientServiceClient;
 use std::path::{Path, PathBuf};
@@ -390,7 +391,7 @@ pub fn run_workers(args: ListArgs) -> Result<()> {
     let engine = |w: &pb::WorkerStatus| {
         w.fingerprint
             .as_ref()
-            .map(|f| format!("{}/{}/{}/{}", f.engine, f.adapter, f.driver, f.version))
+            .map(|f| fingerprint_from_proto(f.clone()).key())
             .unwrap_or_default()
     };
     if args.json {

@@ -96,7 +96,7 @@ pub fn run_in_process(
             used,
             photons_simulated: simulated + plan.setup_photons()?,
             wall_seconds: started.elapsed().as_secs_f64(),
-            engine: engine.fingerprint().to_string(),
+            engine: engine.fingerprint().key(),
             reproducible: true,
         },
     )

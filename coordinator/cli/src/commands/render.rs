@@ -86,7 +86,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let exited = counts.total();
     let mut sidecar = Sidecar::for_render(&geometry, u64::from(args.photons));
     sidecar.seed = Some(args.seed);
-    sidecar.engine = Some(fingerprint.to_string());
+    sidecar.engine = Some(fingerprint.key());
     sidecar.scene_sha256 = Some(loaded.sha256.clone());
     sidecar.scene = Some(loaded.origin.clone());
     sidecar.photons_exited = Some(exited);

@@ -1,0 +1,48 @@
+//! Expiry: leases past their deadline, or held by workers that stopped sending heartbeats, are
+//! handed out again, and those workers forgotten.
+
+use super::Scheduler;
+use std::time::Instant;
+
+impl Scheduler {
+    /// Hands out again the leases past their deadline or of workers that stopped sending
+    /// heartbeats, and forgets those workers.
+    pub fn sweep(&mut self, now: Instant) {
+        let silent_after = self.settings.heartbeat * self.settings.missed_heartbeats;
+        let gone: Vec<String> = self
+            .workers
+            .values()
+            .filter(|w| now.duration_since(w.last_seen) > silent_after)
+            .map(|w| w.id.clone())
+            .collect();
+        for id in &gone {
+            tracing::warn!(
+                "worker {id} missed {} heartbeats: forgotten",
+                self.settings.missed_heartbeats
+            );
+            self.workers.remove(id);
+        }
+        let expired: Vec<u64> = self
+            .leases
+            .iter()
+            .filter(|(_, l)| now > l.deadline || !self.workers.contains_key(&l.worker))
+            .map(|(&t, _)| t)
+            .collect();
+        for t in expired {
+            if let Some(l) = self.leases.remove(&t) {
+                tracing::warn!(
+                    "task {t} attempt {} of job {} (worker {}) expired: leasing it again",
+                    l.piece.attempt,
+                    l.job,
+                    l.worker
+                );
+                self.counters.leases_expired += 1;
+                if let Some(j) = self.jobs.get_mut(&l.job) {
+                    if let Some(g) = j.groups.iter_mut().find(|g| g.id == l.group) {
+                        g.give_back(l.piece);
+                    }
+                }
+            }
+        }
+    }
+}

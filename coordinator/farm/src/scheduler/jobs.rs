@@ -1,0 +1,91 @@
+//! What clients ask of jobs: submit, look up, cancel, delete, and why an active job waits.
+
+use super::{Refusal, Scheduler, STRIKES};
+use crate::job::Job;
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::params::JobParams;
+
+impl Scheduler {
+    /// Validates and stores a job; returns its id.
+    pub fn submit(&mut self, params: JobParams, inputs: Inputs) -> Result<String, Refusal> {
+        let id = self.store.new_job_id().map_err(anyhow::Error::from)?;
+        let job = Job::submit(id.clone(), params, inputs, self.store.as_ref())
+            .map_err(|e| Refusal::Invalid(format!("{e:#}")))?;
+        tracing::info!("job {id} submitted ({})", job.name());
+        self.jobs.insert(id.clone(), job);
+        Ok(id)
+    }
+
+    pub fn job(&self, id: &str) -> Result<&Job, Refusal> {
+        self.jobs
+            .get(id)
+            .ok_or_else(|| Refusal::NotFound(format!("no job {id:?} (see `scatterfarm jobs`)")))
+    }
+
+    pub(super) fn job_mut(&mut self, id: &str) -> Result<&mut Job, Refusal> {
+        self.jobs
+            .get_mut(id)
+            .ok_or_else(|| Refusal::NotFound(format!("no job {id:?} (see `scatterfarm jobs`)")))
+    }
+
+    /// Stops a job; leases of it are refused when they come back.
+    pub fn cancel(&mut self, id: &str) -> Result<(), Refusal> {
+        let store = self.store.clone();
+        self.job_mut(id)?.cancel(store.as_ref())?;
+        self.leases.retain(|_, l| l.job != id);
+        tracing::info!("job {id} cancelled");
+        Ok(())
+    }
+
+    /// Removes a job and everything stored of it (cancelling it first if it runs).
+    pub fn delete(&mut self, id: &str) -> Result<(), Refusal> {
+        self.cancel(id)?;
+        self.jobs.remove(id);
+        self.store.delete_job(id).map_err(anyhow::Error::from)?;
+        self.strikes.retain(|(j, _), _| j != id);
+        tracing::info!("job {id} deleted");
+        Ok(())
+    }
+
+    /// Why an active job gets no renders, if it does not.
+    pub fn waiting_reason(&self, job: &Job) -> Option<String> {
+        if !job.is_active() {
+            return None;
+        }
+        if self.leases.values().any(|l| l.job == job.id) {
+            return None;
+        }
+        let matching = self
+            .workers
+            .values()
+            .filter(|w| job.accepts(&w.fingerprint_key))
+            .filter(|w| {
+                self.strikes
+                    .get(&(job.id.clone(), w.id.clone()))
+                    .is_none_or(|&s| s < STRIKES)
+            })
+            .count();
+        if matching == 0 {
+            return Some(match job.progress.pinned.as_deref() {
+                Some(p) if p != crate::job::ANY_ENGINE => {
+                    format!("waiting for a worker with engine {p}")
+                }
+                _ => "waiting for a worker".to_string(),
+            });
+        }
+        None
+    }
+
+    /// Workers holding a lease of `job`.
+    pub fn workers_busy(&self, job: &str) -> u32 {
+        let mut w: Vec<&str> = self
+            .leases
+            .values()
+            .filter(|l| l.job == job)
+            .map(|l| l.worker.as_str())
+            .collect();
+        w.sort_unstable();
+        w.dedup();
+        w.len() as u32
+    }
+}

@@ -1,0 +1,142 @@
+//! The scheduler proper: the next piece of work for a worker, taken from the jobs in
+//! round-robin, with the job pinned to the worker's engine on its first lease.
+
+use super::sizing::{lease_duration, max_photons, photons_per_launch};
+use super::{unix_ms_after, Refusal, Scheduler, STRIKES};
+use crate::work::Piece;
+use std::time::Instant;
+
+/// A leased piece.
+#[derive(Debug, Clone)]
+pub struct Lease {
+    pub job: String,
+    pub group: u64,
+    pub piece: Piece,
+    pub worker: String,
+    pub deadline: Instant,
+    pub deadline_unix_ms: u64,
+}
+
+/// A task as handed to a worker (the service turns it into the protocol's message).
+#[derive(Debug, Clone)]
+pub struct TaskOut {
+    pub job: String,
+    pub piece: Piece,
+    pub deadline_unix_ms: u64,
+    /// The group's geometry, and whether it is the job's (cacheable) geometry.
+    pub geometry: scatterfarm_model::Geometry,
+    pub job_geometry: bool,
+    pub table: Vec<scatterfarm_model::Material>,
+    pub items: Vec<scatterfarm_model::RenderItem>,
+}
+
+impl Scheduler {
+    /// The next piece for `worker`, or why there is none.
+    pub fn lease(&mut self, worker_id: &str) -> Result<Result<TaskOut, String>, Refusal> {
+        let worker = match self.workers.get_mut(worker_id) {
+            Some(w) => {
+                w.last_seen = Instant::now();
+                w.clone()
+            }
+            None => {
+                return Err(Refusal::NotFound(format!(
+                    "unknown worker {worker_id}: register again"
+                )))
+            }
+        };
+        if self.draining {
+            return Ok(Err("the coordinator is draining".into()));
+        }
+        // Round-robin: start after the job served last.
+        let ids: Vec<String> = self.jobs.keys().cloned().collect();
+        let start = self
+            .last_served
+            .as_ref()
+            .and_then(|l| ids.iter().position(|i| i > l))
+            .unwrap_or(0);
+        let store = self.store.clone();
+        let mut reason = "no job needs renders".to_string();
+        for k in 0..ids.len() {
+            let id = &ids[(start + k) % ids.len()];
+            if self
+                .strikes
+                .get(&(id.clone(), worker.id.clone()))
+                .is_some_and(|&s| s >= STRIKES)
+            {
+                reason = format!("blocked for job {id} after {STRIKES} bad results");
+                continue;
+            }
+            let (next_group, next_task) = (&mut self.next_group, &mut self.next_task);
+            let Some(job) = self.jobs.get_mut(id) else {
+                continue;
+            };
+            if !job.is_active() {
+                continue;
+            }
+            if !job.accepts(&worker.fingerprint_key) {
+                reason = format!(
+                    "no job for engine {} (job {id} is pinned to {})",
+                    worker.fingerprint_key,
+                    job.progress.pinned.clone().unwrap_or_default()
+                );
+                continue;
+            }
+            if job.progress.pinned.is_none() {
+                tracing::info!("job {id} pinned to {}", worker.fingerprint_key);
+                job.pin(&worker.fingerprint_key, store.as_ref())?;
+            }
+            let mut new_group = || {
+                let g = *next_group;
+                *next_group += 1;
+                g
+            };
+            if let Err(e) = job.plan_work(&mut new_group, store.as_ref()) {
+                let msg = format!("{e:#}");
+                job.fail(msg, store.as_ref())?;
+                continue;
+            }
+            let Some(group) = job.groups.iter_mut().find(|g| g.has_work()) else {
+                continue;
+            };
+            let per_photon = photons_per_launch(group);
+            let max_photons = max_photons(&self.settings, worker.photons_per_second, per_photon);
+            let mut new_task = || {
+                let t = *next_task;
+                *next_task += 1;
+                t
+            };
+            let Some(piece) = group.take(max_photons, &mut new_task) else {
+                continue;
+            };
+            let lease_for = lease_duration(
+                &self.settings,
+                piece.count,
+                worker.photons_per_second,
+                per_photon,
+            );
+            let task = TaskOut {
+                job: id.clone(),
+                piece,
+                deadline_unix_ms: unix_ms_after(lease_for),
+                geometry: group.geometry,
+                job_geometry: group.geometry == job.plan.search_geometry,
+                table: group.table.clone(),
+                items: group.items.iter().map(|i| i.item.clone()).collect(),
+            };
+            self.leases.insert(
+                piece.task_id,
+                Lease {
+                    job: id.clone(),
+                    group: group.id,
+                    piece,
+                    worker: worker.id.clone(),
+                    deadline: Instant::now() + lease_for,
+                    deadline_unix_ms: task.deadline_unix_ms,
+                },
+            );
+            self.last_served = Some(id.clone());
+            return Ok(Ok(task));
+        }
+        Ok(Err(reason))
+    }
+}

@@ -1,0 +1,159 @@
+//! The coordinator's scheduler: jobs, registered workers and leases, and the rules between them.
+//!
+//! Everything here is synchronous and driven by the gRPC services (one mutex around a
+//! [`Scheduler`]): workers register and lease pieces of render groups; jobs are served
+//! round-robin so many reconstructions progress together; a piece not returned by its deadline,
+//! or whose worker stops sending heartbeats, is leased again with the next attempt number;
+//! results are checked before they are summed, and a worker that sends three bad results is
+//! blocked for that job.
+//!
+//! - [`jobs`]: what clients ask of jobs (submit, look up, cancel, delete, why one waits).
+//! - [`registry`]: registered workers ([`WorkerEntry`]) and their heartbeats.
+//! - [`lease`]: handing the next piece to a worker, jobs in round-robin.
+//! - [`sizing`]: how many photons a piece holds and how long its lease lasts.
+//! - [`results`]: checking a returned result against its lease and summing it; give-backs.
+//! - [`expiry`]: leases past their deadline and silent workers.
+
+mod expiry;
+mod jobs;
+mod lease;
+mod registry;
+mod results;
+mod sizing;
+
+pub use lease::{Lease, TaskOut};
+pub use registry::WorkerEntry;
+
+use super::job::Job;
+use super::store::Store;
+use anyhow::Result;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Tunables of a coordinator.
+#[derive(Debug, Clone, Copy)]
+pub struct Settings {
+    /// Pieces are sized so the leasing worker renders one in about this long.
+    pub task_seconds: f64,
+    /// How often workers send heartbeats.
+    pub heartbeat: Duration,
+    /// Heartbeats a worker may miss before its leases are handed out again.
+    pub missed_heartbeats: u32,
+    /// The shortest lease; a lease lasts the longer of this and 5 × the expected render time.
+    pub min_lease: Duration,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            task_seconds: 2.0,
+            heartbeat: Duration::from_secs(2),
+            missed_heartbeats: 3,
+            min_lease: Duration::from_secs(30),
+        }
+    }
+}
+
+/// Bad results a worker may send for one job before it is blocked for it.
+pub const STRIKES: u32 = 3;
+
+/// Why a request is refused; the service maps these to gRPC status codes.
+#[derive(Debug, thiserror::Error)]
+pub enum Refusal {
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    Stale(String),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl From<anyhow::Error> for Refusal {
+    fn from(e: anyhow::Error) -> Self {
+        Refusal::Internal(format!("{e:#}"))
+    }
+}
+
+/// Counters for listings and metrics.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Counters {
+    pub leases_expired: u64,
+    pub results_refused: u64,
+    pub results_accepted: u64,
+    /// Renders whose counts were complete (setup and search renders).
+    pub renders_completed: u64,
+    /// Photons (all sources) of accepted results.
+    pub photons: u64,
+}
+
+/// The coordinator's state.
+pub struct Scheduler {
+    store: Arc<dyn Store>,
+    pub settings: Settings,
+    pub jobs: BTreeMap<String, Job>,
+    pub workers: HashMap<String, WorkerEntry>,
+    /// By task id.
+    pub leases: HashMap<u64, Lease>,
+    /// (job, worker) → bad results.
+    strikes: HashMap<(String, String), u32>,
+    /// The job served last, for round-robin.
+    last_served: Option<String>,
+    next_task: u64,
+    next_group: u64,
+    next_worker: u64,
+    /// Makes worker ids of different coordinator runs differ.
+    boot: u32,
+    pub draining: bool,
+    pub counters: Counters,
+}
+
+fn unix_ms_after(d: Duration) -> u64 {
+    (std::time::SystemTime::now() + d)
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|t| t.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+impl Scheduler {
+    /// Loads every stored job; unfinished ones resume.
+    pub fn open(store: Arc<dyn Store>, settings: Settings) -> Result<Scheduler> {
+        let mut jobs = BTreeMap::new();
+        for (id, record) in store.records()? {
+            match Job::restore(id.clone(), &record, store.as_ref()) {
+                Ok(job) => {
+                    if job.is_active() {
+                        tracing::info!(
+                            "resuming job {id} at {} of {} renders",
+                            job.progress.search.progress().renders_done,
+                            job.progress.search.progress().renders_total
+                        );
+                    }
+                    jobs.insert(id, job);
+                }
+                Err(e) => tracing::error!("cannot load job {id}: {e:#}"),
+            }
+        }
+        Ok(Scheduler {
+            store,
+            settings,
+            jobs,
+            workers: HashMap::new(),
+            leases: HashMap::new(),
+            strikes: HashMap::new(),
+            last_served: None,
+            next_task: 1,
+            next_group: 1,
+            next_worker: 1,
+            boot: super::nonce(),
+            draining: false,
+            counters: Counters::default(),
+        })
+    }
+
+    pub fn store(&self) -> &dyn Store {
+        self.store.as_ref()
+    }
+}

@@ -1,0 +1,65 @@
+//! The registry of workers: who registered with which engine and speed, and when each was last
+//! heard from.
+
+use super::Scheduler;
+use scatterfarm_model::EngineFingerprint;
+use std::time::Instant;
+
+/// A registered worker.
+#[derive(Debug, Clone)]
+pub struct WorkerEntry {
+    pub id: String,
+    pub name: String,
+    pub fingerprint: EngineFingerprint,
+    /// The fingerprint's canonical key ([`EngineFingerprint::key`]), as jobs are pinned to it.
+    pub fingerprint_key: String,
+    pub photons_per_second: f64,
+    pub last_seen: Instant,
+    pub tasks_completed: u64,
+}
+
+impl Scheduler {
+    /// Registers a worker; returns its id.
+    pub fn register(
+        &mut self,
+        name: String,
+        fingerprint: EngineFingerprint,
+        photons_per_second: f64,
+    ) -> String {
+        let id = format!("w{:08x}-{}", self.boot, self.next_worker);
+        self.next_worker += 1;
+        let key = fingerprint.key();
+        tracing::info!(
+            "worker {id} ({name}) registered: {key}, {:.2} M photons/s",
+            photons_per_second / 1e6
+        );
+        self.workers.insert(
+            id.clone(),
+            WorkerEntry {
+                id: id.clone(),
+                name,
+                fingerprint,
+                fingerprint_key: key,
+                photons_per_second: if photons_per_second.is_finite() && photons_per_second > 0.0 {
+                    photons_per_second
+                } else {
+                    1e5
+                },
+                last_seen: Instant::now(),
+                tasks_completed: 0,
+            },
+        );
+        id
+    }
+
+    /// Records a heartbeat; false if the worker is not known (it must register again).
+    pub fn heartbeat(&mut self, worker: &str) -> bool {
+        match self.workers.get_mut(worker) {
+            Some(w) => {
+                w.last_seen = Instant::now();
+                true
+            }
+            None => false,
+        }
+    }
+}

@@ -1,0 +1,160 @@
+//! Results and give-backs: a returned result is checked against its lease (worker, job,
+//! attempt) and its group, counted against the worker if malformed, and otherwise summed; a
+//! complete group is scored and advances its job.
+
+use super::{Lease, Refusal, Scheduler, STRIKES};
+use crate::work::RenderGroup;
+use scatterfarm_model::CountMatrix;
+
+impl Scheduler {
+    /// The lease a result claims to answer, checked for worker, job and attempt.
+    pub(super) fn check_lease(
+        &self,
+        worker: &str,
+        job: &str,
+        task: u64,
+        attempt: u32,
+    ) -> Result<&Lease, Refusal> {
+        if !self.workers.contains_key(worker) {
+            return Err(Refusal::NotFound(format!(
+                "unknown worker {worker}: register again"
+            )));
+        }
+        let lease = self.leases.get(&task).ok_or_else(|| {
+            Refusal::Stale(format!(
+                "task {task} is not leased (its lease expired and it was done elsewhere, or its job \
+                 was cancelled)"
+            ))
+        })?;
+        if lease.piece.attempt != attempt {
+            return Err(Refusal::Stale(format!(
+                "attempt {attempt} of task {task} is stale: attempt {} holds the lease",
+                lease.piece.attempt
+            )));
+        }
+        if lease.worker != worker {
+            return Err(Refusal::Stale(format!(
+                "task {task} attempt {attempt} is leased to another worker"
+            )));
+        }
+        if lease.job != job {
+            return Err(Refusal::Invalid(format!(
+                "task {task} belongs to job {}, not {job}",
+                lease.job
+            )));
+        }
+        Ok(lease)
+    }
+
+    /// Takes a result: checks it, sums it, and when its group is complete scores it and
+    /// advances the job.
+    pub fn complete(
+        &mut self,
+        worker: &str,
+        job_id: &str,
+        task: u64,
+        attempt: u32,
+        counts: Result<Vec<CountMatrix>, String>,
+        scatter_events: u64,
+    ) -> Result<(), Refusal> {
+        let refused = |scheduler: &mut Scheduler, r: Refusal| {
+            scheduler.counters.results_refused += 1;
+            tracing::warn!("result of task {task} attempt {attempt} from {worker} refused: {r}");
+            Err(r)
+        };
+        let lease = match self.check_lease(worker, job_id, task, attempt) {
+            Ok(l) => l.clone(),
+            Err(r) => return refused(self, r),
+        };
+        let store = self.store.clone();
+        let check = {
+            let job = self.job(job_id)?;
+            match job.groups.iter().find(|g| g.id == lease.group) {
+                None => Err(Refusal::Stale(format!(
+                    "task {task}'s renders are no longer needed"
+                ))),
+                Some(group) => match &counts {
+                    Err(e) => Err(Refusal::Invalid(e.clone())),
+                    Ok(c) => group.check(&lease.piece, c).map_err(Refusal::Invalid),
+                },
+            }
+        };
+        if let Err(r) = check {
+            self.leases.remove(&task);
+            if let Refusal::Invalid(_) = r {
+                let strikes = self
+                    .strikes
+                    .entry((job_id.to_string(), worker.to_string()))
+                    .or_insert(0);
+                *strikes += 1;
+                if *strikes >= STRIKES {
+                    tracing::warn!(
+                        "worker {worker} sent {STRIKES} bad results for job {job_id}: blocked for it"
+                    );
+                }
+                if let Ok(job) = self.job_mut(job_id) {
+                    if let Some(g) = job.groups.iter_mut().find(|g| g.id == lease.group) {
+                        g.give_back(lease.piece);
+                    }
+                }
+            }
+            return refused(self, r);
+        }
+        let counts = counts.map_err(Refusal::Invalid)?;
+        self.leases.remove(&task);
+        self.counters.results_accepted += 1;
+        if let Some(w) = self.workers.get_mut(worker) {
+            w.tasks_completed += 1;
+        }
+        let next_group = &mut self.next_group;
+        let mut new_group = || {
+            let g = *next_group;
+            *next_group += 1;
+            g
+        };
+        let job = self
+            .jobs
+            .get_mut(job_id)
+            .ok_or_else(|| Refusal::NotFound(format!("no job {job_id}")))?;
+        let Some(pos) = job.groups.iter().position(|g| g.id == lease.group) else {
+            return Err(Refusal::Stale(format!(
+                "task {task}'s renders are no longer needed"
+            )));
+        };
+        let group = &mut job.groups[pos];
+        group.accumulate(&lease.piece, counts, scatter_events);
+        let photons =
+            u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
+        job.session_photons += photons;
+        self.counters.photons += photons;
+        let leased_elsewhere = self.leases.values().any(|l| l.group == lease.group);
+        if job.groups[pos].is_complete() && !leased_elsewhere {
+            let group: RenderGroup = job.groups.remove(pos);
+            self.counters.renders_completed += group.items.len() as u64;
+            if let Err(e) = job.group_complete(group, &mut new_group, store.as_ref()) {
+                job.fail(format!("{e:#}"), store.as_ref())?;
+            }
+        }
+        Ok(())
+    }
+
+    /// A worker gives a task back.
+    pub fn release(
+        &mut self,
+        worker: &str,
+        job: &str,
+        task: u64,
+        attempt: u32,
+        reason: &str,
+    ) -> Result<(), Refusal> {
+        let lease = self.check_lease(worker, job, task, attempt)?.clone();
+        tracing::warn!("worker {worker} gave back task {task}: {reason}");
+        self.leases.remove(&task);
+        if let Some(j) = self.jobs.get_mut(job) {
+            if let Some(g) = j.groups.iter_mut().find(|g| g.id == lease.group) {
+                g.give_back(lease.piece);
+            }
+        }
+        Ok(())
+    }
+}

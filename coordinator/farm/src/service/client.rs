@@ -1,0 +1,177 @@
+//! The `ClientService`: submitting jobs, following them, fetching results, cancelling and
+//! deleting them, and listing jobs and workers.
+
+use super::Farm;
+use crate::job::Phase;
+use crate::status::{is_terminal, job_status};
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::params::JobParams;
+use scatterfarm_proto::convert::fingerprint_to_proto;
+use scatterfarm_proto::v1 as pb;
+use scatterfarm_proto::v1::client_service_server::ClientService;
+use std::path::Path;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
+
+/// The `ClientService` implementation.
+pub struct ClientApi(pub Arc<Farm>);
+
+type StatusStream = Pin<Box<dyn Stream<Item = Result<pb::JobStatus, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl ClientService for ClientApi {
+    async fn submit(
+        &self,
+        request: Request<pb::SubmitRequest>,
+    ) -> Result<Response<pb::SubmitResponse>, Status> {
+        let r = request.into_inner();
+        let params = JobParams::from_toml(&r.job_toml, Path::new("the submitted job"))
+            .map_err(|e| Status::invalid_argument(format!("{e:#}")))?;
+        let inputs = Inputs {
+            files: r.files.into_iter().map(|(k, v)| (k, v.to_vec())).collect(),
+        };
+        let farm = self.0.clone();
+        let id = tokio::task::spawn_blocking(move || farm.scheduler().submit(params, inputs))
+            .await
+            .map_err(|e| Status::internal(format!("the submission handler failed: {e}")))??;
+        self.0.work.notify_waiters();
+        Ok(Response::new(pb::SubmitResponse { job_id: id }))
+    }
+
+    async fn status(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::JobStatus>, Status> {
+        let scheduler = self.0.scheduler();
+        let job = scheduler.job(&request.into_inner().job_id)?;
+        Ok(Response::new(job_status(&scheduler, job)))
+    }
+
+    type WatchStream = StatusStream;
+
+    async fn watch(&self, request: Request<pb::JobRef>) -> Result<Response<StatusStream>, Status> {
+        let id = request.into_inner().job_id;
+        let farm = self.0.clone();
+        // Fail now if the job does not exist.
+        {
+            let scheduler = farm.scheduler();
+            scheduler.job(&id)?;
+        }
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            let mut last: Option<pb::JobStatus> = None;
+            loop {
+                let status = {
+                    let scheduler = farm.scheduler();
+                    match scheduler.job(&id) {
+                        Ok(job) => Ok(job_status(&scheduler, job)),
+                        Err(r) => Err(Status::from(r)),
+                    }
+                };
+                let end = match &status {
+                    Ok(s) => is_terminal(s),
+                    Err(_) => true,
+                };
+                if last.as_ref() != status.as_ref().ok() {
+                    last = status.as_ref().ok().cloned();
+                    if tx.send(status).await.is_err() {
+                        return;
+                    }
+                }
+                if end {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
+    }
+
+    async fn result(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::JobResult>, Status> {
+        let id = request.into_inner().job_id;
+        let farm = self.0.clone();
+        let result = tokio::task::spawn_blocking(move || -> Result<pb::JobResult, Status> {
+            let scheduler = farm.scheduler();
+            let job = scheduler.job(&id)?;
+            let finished = job.progress.phase == Phase::Finished;
+            let files = if finished {
+                job.stored_outputs(scheduler.store())
+            } else {
+                job.outputs()
+            }
+            .map_err(|e| Status::failed_precondition(format!("job {id}: {e:#}")))?;
+            Ok(pb::JobResult {
+                partial: !finished,
+                status: Some(job_status(&scheduler, job)),
+                files: files.into_iter().map(|(k, v)| (k, v.into())).collect(),
+            })
+        })
+        .await
+        .map_err(|e| Status::internal(format!("the result handler failed: {e}")))??;
+        Ok(Response::new(result))
+    }
+
+    async fn cancel(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::CancelResponse>, Status> {
+        self.0.scheduler().cancel(&request.into_inner().job_id)?;
+        Ok(Response::new(pb::CancelResponse {}))
+    }
+
+    async fn delete(
+        &self,
+        request: Request<pb::JobRef>,
+    ) -> Result<Response<pb::DeleteResponse>, Status> {
+        self.0.scheduler().delete(&request.into_inner().job_id)?;
+        Ok(Response::new(pb::DeleteResponse {}))
+    }
+
+    async fn list_jobs(
+        &self,
+        _request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let scheduler = self.0.scheduler();
+        let jobs = scheduler
+            .jobs
+            .values()
+            .map(|j| job_status(&scheduler, j))
+            .collect();
+        Ok(Response::new(pb::ListJobsResponse { jobs }))
+    }
+
+    async fn list_workers(
+        &self,
+        _request: Request<pb::ListWorkersRequest>,
+    ) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let scheduler = self.0.scheduler();
+        let now = Instant::now();
+        let mut workers: Vec<pb::WorkerStatus> = scheduler
+            .workers
+            .values()
+            .map(|w| pb::WorkerStatus {
+                worker_id: w.id.clone(),
+                name: w.name.clone(),
+                fingerprint: Some(fingerprint_to_proto(&w.fingerprint)),
+                photons_per_second: w.photons_per_second,
+                tasks_leased: scheduler
+                    .leases
+                    .values()
+                    .filter(|l| l.worker == w.id)
+                    .count() as u32,
+                last_heartbeat_seconds_ago: now.duration_since(w.last_seen).as_secs_f64(),
+                tasks_completed: w.tasks_completed,
+            })
+            .collect();
+        workers.sort_by(|a, b| a.worker_id.cmp(&b.worker_id));
+        Ok(Response::new(pb::ListWorkersResponse { workers }))
+    }
+}

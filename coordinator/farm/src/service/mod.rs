@@ -1,0 +1,50 @@
+//! The two gRPC services over a shared [`Farm`] (one [`Scheduler`] behind a mutex): they
+//! translate between protocol messages and the scheduler's types (every conversion is
+//! `scatterfarm_proto::convert`'s) and map refusals to status codes; all decisions live in the
+//! scheduler.
+//!
+//! - [`worker`]: `WorkerService` (register, heartbeat, lease, complete, release).
+//! - [`client`]: `ClientService` (submit, status, watch, result, cancel, delete, listings).
+
+mod client;
+mod worker;
+
+pub use client::ClientApi;
+pub use worker::WorkerApi;
+
+use crate::scheduler::{Refusal, Scheduler};
+use std::sync::{Arc, Mutex, MutexGuard};
+use tokio::sync::Notify;
+use tonic::Status;
+
+/// The coordinator shared by both services and the background sweeper.
+pub struct Farm {
+    scheduler: Mutex<Scheduler>,
+    /// Woken when work may have appeared (a submission, a piece given back, a group done).
+    pub work: Notify,
+}
+
+impl Farm {
+    pub fn new(scheduler: Scheduler) -> Arc<Farm> {
+        Arc::new(Farm {
+            scheduler: Mutex::new(scheduler),
+            work: Notify::new(),
+        })
+    }
+
+    /// The scheduler, even if a panic poisoned the lock (the state stays consistent per call).
+    pub fn scheduler(&self) -> MutexGuard<'_, Scheduler> {
+        self.scheduler.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl From<Refusal> for Status {
+    fn from(r: Refusal) -> Status {
+        match r {
+            Refusal::NotFound(m) => Status::not_found(m),
+            Refusal::Stale(m) => Status::failed_precondition(m),
+            Refusal::Invalid(m) => Status::invalid_argument(m),
+            Refusal::Internal(m) => Status::internal(m),
+        }
+    }
+}

@@ -1,0 +1,153 @@
+//! The `WorkerService`: workers register, send heartbeats, lease tasks, and return results or
+//! give tasks back.
+
+use super::Farm;
+use crate::scheduler::TaskOut;
+use scatterfarm_model::PhotonRange;
+use scatterfarm_proto::convert::{
+    fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
+};
+use scatterfarm_proto::v1 as pb;
+use scatterfarm_proto::v1::worker_service_server::WorkerService;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tonic::{Request, Response, Status};
+
+/// The `WorkerService` implementation.
+pub struct WorkerApi(pub Arc<Farm>);
+
+/// The wire task for `t`; the geometry is left out when it is the job's and the worker holds
+/// it (`cached` lists the jobs whose geometry it holds).
+fn task_to_pb(t: TaskOut, cached: &[String]) -> pb::Task {
+    let send_geometry = !(t.job_geometry && cached.contains(&t.job));
+    let lease = TaskLease {
+        job_id: t.job,
+        task_id: t.piece.task_id,
+        attempt: t.piece.attempt,
+        lease_deadline_unix_ms: t.deadline_unix_ms,
+    };
+    let task = RenderTask {
+        geometry: t.geometry,
+        table: t.table,
+        items: t.items,
+        photons: PhotonRange {
+            first: t.piece.first,
+            count: t.piece.count,
+        },
+    };
+    task_to_proto(lease, &task, t.job_geometry, send_geometry)
+}
+
+#[tonic::async_trait]
+impl WorkerService for WorkerApi {
+    async fn register(
+        &self,
+        request: Request<pb::RegisterRequest>,
+    ) -> Result<Response<pb::RegisterResponse>, Status> {
+        let r = request.into_inner();
+        let theirs = r.protocol.unwrap_or_default();
+        if theirs.major != pb::PROTOCOL.major {
+            return Err(Status::failed_precondition(format!(
+                "protocol version mismatch: the worker speaks {}.{}, this coordinator {}.{}; \
+                 run the same scatterfarm release on both",
+                theirs.major,
+                theirs.minor,
+                pb::PROTOCOL.major,
+                pb::PROTOCOL.minor
+            )));
+        }
+        let f = r.fingerprint.ok_or_else(|| {
+            Status::invalid_argument("registration without an engine fingerprint")
+        })?;
+        let mut scheduler = self.0.scheduler();
+        if scheduler.draining {
+            return Err(Status::unavailable("the coordinator is draining"));
+        }
+        let id = scheduler.register(r.name, fingerprint_from_proto(f), r.photons_per_second);
+        let heartbeat = scheduler.settings.heartbeat.as_millis() as u32;
+        Ok(Response::new(pb::RegisterResponse {
+            worker_id: id,
+            heartbeat_interval_ms: heartbeat,
+        }))
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<pb::HeartbeatRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let known = self
+            .0
+            .scheduler()
+            .heartbeat(&request.into_inner().worker_id);
+        Ok(Response::new(pb::HeartbeatResponse { known }))
+    }
+
+    async fn lease(
+        &self,
+        request: Request<pb::LeaseRequest>,
+    ) -> Result<Response<pb::LeaseResponse>, Status> {
+        let r = request.into_inner();
+        // Wait up to a second for work before answering "none", so idle workers do not poll
+        // hard and new work starts at once.
+        let until = Instant::now() + Duration::from_secs(1);
+        loop {
+            let notified = self.0.work.notified();
+            let outcome = self.0.scheduler().lease(&r.worker_id)?;
+            match outcome {
+                Ok(task) => {
+                    return Ok(Response::new(pb::LeaseResponse {
+                        task: Some(task_to_pb(task, &r.cached_jobs)),
+                        retry_after_ms: 0,
+                        reason: String::new(),
+                    }))
+                }
+                Err(reason) => {
+                    let left = until.saturating_duration_since(Instant::now());
+                    if left.is_zero() || tokio::time::timeout(left, notified).await.is_err() {
+                        return Ok(Response::new(pb::LeaseResponse {
+                            task: None,
+                            retry_after_ms: 500,
+                            reason,
+                        }));
+                    }
+                }
+            }
+        }
+    }
+
+    async fn complete(
+        &self,
+        request: Request<pb::CompleteRequest>,
+    ) -> Result<Response<pb::CompleteResponse>, Status> {
+        let r = request.into_inner();
+        let counts = results_from_proto(&r.counts).map_err(|e| e.to_string());
+        let farm = self.0.clone();
+        // Scoring a completed group takes milliseconds: keep it off the async threads.
+        tokio::task::spawn_blocking(move || {
+            farm.scheduler().complete(
+                &r.worker_id,
+                &r.job_id,
+                r.task_id,
+                r.attempt,
+                counts,
+                r.scatter_events,
+            )
+        })
+        .await
+        .map_err(|e| Status::internal(format!("the result handler failed: {e}")))??;
+        self.0.work.notify_waiters();
+        Ok(Response::new(pb::CompleteResponse {}))
+    }
+
+    async fn release(
+        &self,
+        request: Request<pb::ReleaseRequest>,
+    ) -> Result<Response<pb::ReleaseResponse>, Status> {
+        let r = request.into_inner();
+        self.0
+            .scheduler()
+            .release(&r.worker_id, &r.job_id, r.task_id, r.attempt, &r.reason)?;
+        self.0.work.notify_waiters();
+        Ok(Response::new(pb::ReleaseResponse {}))
+    }
+}

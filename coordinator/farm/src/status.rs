@@ -1,0 +1,82 @@
+//! The job-status view: a job as clients, the CLI and the status page see it (the protocol's
+//! `JobStatus`), and the one name of each job state.
+
+use crate::job::{Job, Phase};
+use crate::scheduler::Scheduler;
+use scatterfarm_proto::v1 as pb;
+
+/// The protocol's state of a job.
+fn state_of(job: &Job) -> pb::JobState {
+    match job.progress.phase {
+        Phase::Preparing => pb::JobState::Preparing,
+        Phase::Searching => pb::JobState::Searching,
+        Phase::Finished => pb::JobState::Finished,
+        Phase::Cancelled => pb::JobState::Cancelled,
+        Phase::Failed { .. } => pb::JobState::Failed,
+    }
+}
+
+/// A job's status as clients see it.
+pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
+    let p = job.progress.search.progress();
+    let (rate, eta) = job.pace();
+    let message = match &job.progress.phase {
+        Phase::Failed { message } => message.clone(),
+        Phase::Preparing => scheduler
+            .waiting_reason(job)
+            .unwrap_or_else(|| "rendering the target and calibrating ε".into()),
+        Phase::Searching => scheduler.waiting_reason(job).unwrap_or_default(),
+        Phase::Finished => "finished".into(),
+        Phase::Cancelled => "cancelled".into(),
+    };
+    pb::JobStatus {
+        job_id: job.id.clone(),
+        name: job.name(),
+        state: state_of(job) as i32,
+        message,
+        engine: job.progress.pinned.clone().unwrap_or_default(),
+        level: p.level,
+        levels: p.levels,
+        permutation: p.permutation,
+        permutations: p.permutations,
+        region: p.region,
+        regions: p.regions,
+        renders_done: p.renders_done,
+        renders_total: p.renders_total,
+        best_similarity: p.best_score.unwrap_or(f64::NAN),
+        photons: job.progress.photons_simulated,
+        photons_per_second: rate,
+        eta_seconds: eta.unwrap_or(-1.0),
+        workers_busy: scheduler.workers_busy(&job.id),
+        submitted_unix_seconds: job.record.submitted_unix,
+    }
+}
+
+/// A job state's name in listings and pages.
+pub fn state_name(state: i32) -> &'static str {
+    match pb::JobState::try_from(state) {
+        Ok(pb::JobState::Preparing) => "preparing",
+        Ok(pb::JobState::Searching) => "searching",
+        Ok(pb::JobState::Finished) => "finished",
+        Ok(pb::JobState::Cancelled) => "cancelled",
+        Ok(pb::JobState::Failed) => "failed",
+        _ => "unknown",
+    }
+}
+
+/// Seconds as H:MM:SS, or "?" when unknown (negative or not finite).
+pub fn duration_text(seconds: f64) -> String {
+    if seconds < 0.0 || !seconds.is_finite() {
+        return "?".into();
+    }
+    let t = seconds.round() as u64;
+    format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
+}
+
+/// Whether a status is final (finished, cancelled or failed).
+pub fn is_terminal(s: &pb::JobStatus) -> bool {
+    matches!(
+        pb::JobState::try_from(s.state),
+        Ok(pb::JobState::Finished | pb::JobState::Cancelled | pb::JobState::Failed)
+    )
+}
