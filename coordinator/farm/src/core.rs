@@ -12,7 +12,7 @@ use super::store::Store;
 use super::work::{Piece, RenderGroup};
 use anyhow::Result;
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::{CountMatrix, EngineFingerprint};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
@@ -184,7 +184,7 @@ impl Core {
     // ---- clients -----------------------------------------------------------------------------
 
     /// Validates and stores a job; returns its id.
-    pub fn submit(&mut self, params: JobParams, inputs: Inputs) -> Result<String, Refusal> {
+    pub fn submit(&mut self, params: JobSpec, inputs: Inputs) -> Result<String, Refusal> {
         let id = self.store.new_job_id().map_err(anyhow::Error::from)?;
         let job = Job::submit(id.clone(), params, inputs, self.store.as_ref())
             .map_err(|e| Refusal::Invalid(format!("{e:#}")))?;
