@@ -1,10 +1,12 @@
 //! `scatterfarm`: render, draw and reconstruct scattering media, alone or as a farm.
 //!
-//! A thin binary: [`commands`] turns each subcommand's raw arguments into the libraries' values
+//! A thin binary: [`args`] holds flags shared by subcommands and maps them onto the
+//! libraries' values; [`commands`] turns each subcommand's raw arguments into the libraries' values
 //! and calls them; [`engines`] opens the engine `--engine` names. The work is done by the crates
 //! it links: `scatterfarm-model`, `-engines`, `-search`, `-job`, `-coordinator` (the service),
 //! `-worker` (the agent) and `-proto`.
 
+mod args;
 mod commands;
 mod engines;
 

@@ -12,8 +12,8 @@ use super::work::{Purpose, RenderGroup};
 use anyhow::{Context, Result};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::outcome::{self, Summary};
-use scatterfarm_job::params::JobParams;
 use scatterfarm_job::plan::{Plan, SetupCounts, TargetSource};
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_search::driver::{Consumption, Scoring};
 use scatterfarm_search::identity::{identity, Identity};
 use scatterfarm_search::similarity::Target;
@@ -29,23 +29,16 @@ pub const ANY_ENGINE: &str = "any";
 /// What never changes after submission.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct JobRecord {
-    pub params: JobParams,
+    pub params: JobSpec,
     /// The names of the input files, stored as blobs `input/NAME`.
     pub files: Vec<String>,
     pub submitted_unix: f64,
 }
 
-/// A stored job record. Records written before the fast search was the default and without a
-/// `search` key ran the paper's search, and still do.
-fn record_from_json(bytes: &[u8]) -> Result<JobRecord, serde_json::Error> {
-    let value: serde_json::Value = serde_json::from_slice(bytes)?;
-    let legacy = value
-        .get("params")
-        .is_some_and(|p| p.get("search").is_none());
-    let mut record: JobRecord = serde_json::from_value(value)?;
-    if legacy {
-        record.params.search = scatterfarm_job::params::SearchMode::Paper;
-    }
+/// A stored job record, its spec of a layout this build reads.
+fn record_from_json(bytes: &[u8]) -> Result<JobRecord, String> {
+    let record: JobRecord = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+    record.params.check_version().map_err(|e| e.to_string())?;
     Ok(record)
 }
 
@@ -68,9 +61,7 @@ pub struct Progress {
     pub pinned: Option<String>,
     /// ε of the finest level's budget (for listings; `epsilons` holds every budget's).
     pub epsilon: Option<f64>,
-    /// ε by photons per source (empty in progress of older releases: their one budget's ε
-    /// is `epsilon`).
-    #[serde(default)]
+    /// ε by photons per source.
     pub epsilons: BTreeMap<u32, f64>,
     pub search: Search,
     /// What the search consumed (the same for interrupted and uninterrupted runs).
@@ -126,7 +117,7 @@ fn decode_f32(bytes: &[u8]) -> Vec<f32> {
 
 impl Job {
     /// Validates a submission and stores it. Nothing is stored when it is invalid.
-    pub fn submit(id: String, params: JobParams, inputs: Inputs, store: &dyn Store) -> Result<Job> {
+    pub fn submit(id: String, params: JobSpec, inputs: Inputs, store: &dyn Store) -> Result<Job> {
         let plan = Plan::resolve(&params, &inputs)?;
         let record = JobRecord {
             files: inputs.files.keys().cloned().collect(),
@@ -170,7 +161,7 @@ impl Job {
         let record = record_from_json(record)
             .map_err(|e| StoreError::Damaged {
                 what: "job record",
-                detail: e.to_string(),
+                detail: e,
             })
             .with_context(|| format!("job {id}"))?;
         let mut inputs = Inputs::default();
@@ -181,21 +172,13 @@ impl Job {
             inputs.files.insert(name.clone(), bytes);
         }
         let plan = Plan::resolve(&record.params, &inputs).with_context(|| format!("job {id}"))?;
-        let mut progress: Progress = match store.progress(&id)? {
+        let progress: Progress = match store.progress(&id)? {
             Some(bytes) => serde_json::from_slice(&bytes).map_err(|e| StoreError::Damaged {
                 what: "job progress",
                 detail: e.to_string(),
             })?,
             None => anyhow::bail!("job {id}: its progress is missing"),
         };
-        progress.search.upgrade(plan.search.config());
-        if progress.epsilons.is_empty() {
-            if let Some(e) = progress.epsilon {
-                progress
-                    .epsilons
-                    .insert(plan.budget.photons_per_source()?, e);
-            }
-        }
         let scoring = match (&progress.phase, progress.epsilons.is_empty()) {
             (Phase::Preparing, _) | (_, true) => None,
             (_, false) => {
@@ -559,28 +542,25 @@ impl Job {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use scatterfarm_job::params::SearchMode;
+    use scatterfarm_job::spec::JobSpec;
 
     #[test]
-    fn records_without_a_search_key_ran_the_papers_search() {
-        let old =
-            br#"{"params":{"scene":"demo8","permutations":2},"files":[],"submitted_unix":1.0}"#;
-        let record = record_from_json(old).unwrap();
-        assert_eq!(record.params.search, SearchMode::Paper);
-        assert_eq!(record.params.permutations, 2);
-        let now = JobRecord {
-            params: scatterfarm_job::params::JobParams {
+    fn records_read_back_and_another_spec_version_is_refused() {
+        let record = JobRecord {
+            params: JobSpec {
                 scene: Some("demo8".into()),
+                permutations: 2,
                 ..Default::default()
             },
             files: vec![],
             submitted_unix: 2.0,
         };
-        let bytes = serde_json::to_vec(&now).unwrap();
-        assert_eq!(
-            record_from_json(&bytes).unwrap().params.search,
-            SearchMode::Fast
-        );
+        let bytes = serde_json::to_vec(&record).unwrap();
+        assert_eq!(record_from_json(&bytes).unwrap().params, record.params);
+        let mut later = record.clone();
+        later.params.version += 1;
+        let err = record_from_json(&serde_json::to_vec(&later).unwrap()).unwrap_err();
+        assert!(err.contains("`version`"), "{err}");
         assert!(record_from_json(b"{").is_err());
     }
 }

@@ -11,7 +11,7 @@ use std::path::Path;
 use thiserror::Error;
 
 /// The layout of the data this build writes. A data folder of another version is refused.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -182,7 +182,7 @@ impl Store for SledStore {
     ) -> Result<(), StoreError> {
         // Not flushed here: the next progress write flushes, and a lost score is re-rendered.
         // Value, step, standard error, then the secondary score and its error when there is
-        // one (stores of older releases hold the first two only, or the first three).
+        // one.
         let mut value = Vec::with_capacity(40);
         value.extend_from_slice(&score.value.to_le_bytes());
         value.extend_from_slice(&step.to_le_bytes());
@@ -204,7 +204,7 @@ impl Store for SledStore {
                 what: "score key",
                 detail: format!("{} bytes", k.len()),
             })?;
-            if ![16, 24, 40].contains(&v.len()) {
+            if ![24, 40].contains(&v.len()) {
                 return Err(StoreError::Damaged {
                     what: "score",
                     detail: format!("{} bytes", v.len()),

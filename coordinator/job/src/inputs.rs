@@ -2,8 +2,8 @@
 //! read from disk by `reconstruct` and `submit`, sent with a job, stored by the coordinator.
 
 use crate::observation::{self, Sidecar};
-use crate::params::JobParams;
 use crate::scene_source::LoadedScene;
+use crate::spec::JobSpec;
 use anyhow::{bail, Context, Result};
 use ndarray::Array2;
 use scatterfarm_model::{builtin, Scene};
@@ -23,7 +23,7 @@ fn key(path: &Path) -> String {
 
 impl Inputs {
     /// Reads every file `params` names; relative paths are taken against `base`.
-    pub fn gather(params: &JobParams, base: &Path) -> Result<Inputs> {
+    pub fn gather(params: &JobSpec, base: &Path) -> Result<Inputs> {
         let mut files = BTreeMap::new();
         if let Some(scene) = &params.scene {
             let path = base.join(scene);

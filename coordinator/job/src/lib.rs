@@ -1,8 +1,9 @@
-//! A scatterfarm reconstruction job, whichever driver runs it: its parameters and input files,
+//! A scatterfarm reconstruction job, whichever driver runs it: its spec and input files,
 //! the plan they resolve to (geometries, candidates, the fresh search, its setup renders), and
 //! its outputs (the map, pictures, `report.json`, measures against a known truth).
 //!
-//! - [`params`]: a reconstruction's parameters (`reconstruct`'s flags, a job file's keys).
+//! - [`spec`]: the versioned job spec (a job file, the wire text, the stored record).
+//! - [`options`]: the search mode and the search options a spec resolves to.
 //! - [`scene_source`]: turns a command-line `SCENE` (a file or a built-in name) into a scene.
 //! - [`observation`]: observation files (float32 NPY plus JSON sidecar), written atomically.
 //! - [`inputs`]: the input files a reconstruction names, held in memory.
@@ -14,10 +15,11 @@
 
 pub mod inputs;
 pub mod observation;
+pub mod options;
 pub mod outcome;
-pub mod params;
 pub mod picture;
 pub mod plan;
 pub mod report;
 pub mod scene_source;
 pub mod setup;
+pub mod spec;

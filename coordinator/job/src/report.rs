@@ -1,6 +1,6 @@
 //! `report.json` of a reconstruction: the measures, what it consumed, and its configuration.
 
-use crate::params::SearchMode;
+use crate::options::SearchMode;
 use scatterfarm_search::similarity::Metric;
 use scatterfarm_search::{Bounds, Race};
 use serde::{Deserialize, Serialize};

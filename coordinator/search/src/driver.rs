@@ -88,7 +88,6 @@ impl Scoring {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Consumption {
     /// Render requests the search made (each answered by a render or by the cache).
-    #[serde(default)]
     pub requests: u64,
     /// Distinct renders the search needed: requests whose identity had not been rendered.
     pub renders: u64,
@@ -98,7 +97,6 @@ pub struct Consumption {
     pub scatter_events: u64,
     /// Batches of requests that needed at least one render: `renders / batches` is how many
     /// renders can run at once, on average.
-    #[serde(default)]
     pub batches: u64,
 }
 

@@ -68,23 +68,17 @@ pub struct SearchConfig {
     /// The job seed: permutations, random materials and render seeds derive from it.
     pub seed: u64,
     pub candidates: Candidates,
-    #[serde(default)]
     pub seeding: Seeding,
-    /// Photons per source of every request (empty only in checkpoints written before budgets
-    /// were part of the search; see [`Search::upgrade`]).
-    #[serde(default)]
+    /// Photons per source of every request.
     pub photons: Photons,
     /// Request all of a permutation's `M⁰`-variants up front.
-    #[serde(default)]
     pub early_step2: bool,
     /// Scores closer than this many standard errors of their difference tie (0: only equal
     /// scores tie, the paper's). A tie inside a step goes to the earlier candidate, and
     /// between the steps to step 2, as in the paper.
-    #[serde(default)]
     pub tie_z: f64,
     /// Where the primary score is saturated, a secondary score decides between tied
     /// candidates (scores then carry [`Score::secondary`]).
-    #[serde(default)]
     pub tiebreak: Option<Tiebreak>,
 }
 
@@ -119,8 +113,7 @@ pub struct RenderRequest {
     /// The request's index in the search's deterministic order.
     pub index: u64,
     pub seed: u64,
-    /// Photons per source (0 only in old checkpoints, until [`Search::upgrade`]).
-    #[serde(default)]
+    /// Photons per source.
     pub photons: u32,
     /// `grid²` indices into the search's table.
     pub assignment: Vec<u16>,
@@ -133,7 +126,6 @@ pub struct Score {
     pub value: f64,
     pub std_error: f64,
     /// The tiebreak's score of the same render, when the search has a [`Tiebreak`].
-    #[serde(default)]
     pub secondary: Option<Secondary>,
 }
 
@@ -228,11 +220,9 @@ struct LevelState {
     /// The best final `M^R` of the permutations so far.
     best: Option<LevelResult>,
     /// Every finished permutation's final `M^R` (for re-scoring).
-    #[serde(default)]
     finals: Vec<LevelResult>,
     /// With early step 2 and per-request seeds: the index of this permutation's first
     /// `M⁰`-variant request, whose seeds the steps reuse.
-    #[serde(default)]
     early_base: Option<u64>,
 }
 
@@ -249,12 +239,8 @@ pub struct Search {
     /// `None` after the end.
     state: Option<LevelState>,
     pending: Vec<RenderRequest>,
-    /// What `pending` is for (`None` only in checkpoints of older releases, which held full
-    /// steps described by `pending_step2`).
-    #[serde(default)]
+    /// What `pending` is for (`None` once finished).
     waiting: Option<Waiting>,
-    #[serde(default, skip_serializing)]
-    pending_step2: bool,
     finished: bool,
 }
 
@@ -291,7 +277,6 @@ impl Search {
             state: None,
             pending: Vec::new(),
             waiting: None,
-            pending_step2: false,
             finished: false,
         };
         let candidates = search.level_candidates(0, &[])?;
@@ -313,22 +298,6 @@ impl Search {
         });
         search.emit_steps();
         Ok(search)
-    }
-
-    /// Completes a search restored from a checkpoint written before photon budgets were part
-    /// of the search: it takes `fresh`'s photon plan (the plan its job resolves to today).
-    pub fn upgrade(&mut self, fresh: &SearchConfig) {
-        if !self.config.photons.per_level.is_empty() {
-            return;
-        }
-        self.config.photons = fresh.photons.clone();
-        let level = self.state.as_ref().map(|s| s.level).unwrap_or(0);
-        let photons = self.config.photons.level(level);
-        for r in &mut self.pending {
-            if r.photons == 0 {
-                r.photons = photons;
-            }
-        }
     }
 
     pub fn config(&self) -> &SearchConfig {
@@ -688,9 +657,8 @@ impl Search {
         {
             return Err(SearchError::ScoreNaN(nan.value));
         }
-        let waiting = match self.waiting.take() {
-            Some(w) => w,
-            None => self.legacy_waiting(),
+        let Some(waiting) = self.waiting.take() else {
+            return Err(SearchError::Finished);
         };
         self.pending.clear();
         match waiting {
@@ -711,17 +679,6 @@ impl Search {
                 self.after_level()
             }
         }
-    }
-
-    /// What an older release's pending requests were: one full step.
-    fn legacy_waiting(&self) -> Waiting {
-        let n = self.pending.len();
-        Waiting::Step(Step {
-            assignments: self.pending.iter().map(|r| r.assignment.clone()).collect(),
-            seeds: self.pending.iter().map(|r| r.seed).collect(),
-            step2_from: if self.pending_step2 { n / 2 } else { n },
-            stage: Stage::Full,
-        })
     }
 
     /// A step's stage came back: race on, or decide the step.

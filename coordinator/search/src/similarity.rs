@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The similarity metrics, by name.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum Metric {
     /// The paper's: the fraction of observations within ε of the target.
@@ -29,6 +29,34 @@ pub enum Metric {
     /// intensity (Anscombe's transform). No weight depends on either noisy side, so the metric
     /// favours neither darker nor brighter candidates.
     L2Stabilized,
+}
+
+impl Metric {
+    /// Every metric, in the order a command line lists them.
+    pub const ALL: [Metric; 5] = [
+        Metric::WithinEpsilon,
+        Metric::L2,
+        Metric::L2InverseIntensity,
+        Metric::L2Pooled,
+        Metric::L2Stabilized,
+    ];
+
+    /// Its name in a job spec and on the command line (the serde name).
+    pub fn name(self) -> &'static str {
+        match self {
+            Metric::WithinEpsilon => "within-epsilon",
+            Metric::L2 => "l2",
+            Metric::L2InverseIntensity => "l2-inverse-intensity",
+            Metric::L2Pooled => "l2-pooled",
+            Metric::L2Stabilized => "l2-stabilized",
+        }
+    }
+}
+
+impl std::fmt::Display for Metric {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 /// Why a score could not be computed.
@@ -281,6 +309,13 @@ pub fn fractions(counts: &CountMatrix, photons_per_source: u64) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn metric_names_are_the_serde_names() {
+        for m in Metric::ALL {
+            assert_eq!(serde_json::to_value(m).unwrap(), m.name());
+        }
+    }
 
     fn counts(values: &[u32]) -> CountMatrix {
         CountMatrix {

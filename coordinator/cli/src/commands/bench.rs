@@ -58,7 +58,7 @@ pub struct ReconstructBenchArgs {
     #[arg(long, default_value_t = 512)]
     pub photons_per_iteration: u32,
     /// The metric (default: the search mode's).
-    #[arg(long, value_enum)]
+    #[arg(long, value_name = "METRIC", value_parser = crate::args::choice::choice::<scatterfarm_search::similarity::Metric>())]
     pub metric: Option<scatterfarm_search::similarity::Metric>,
     /// Job seeds, comma-separated: every scene runs once per seed (pixel accuracy moves in
     /// whole pixels, so compare searches over several).
@@ -74,8 +74,12 @@ pub struct ReconstructBenchArgs {
     #[arg(long)]
     pub target_photons: Option<u32>,
     /// The search: the fast one (the reconstructions' default), or the paper's.
-    #[arg(long, value_enum, default_value_t = scatterfarm_job::params::SearchMode::Fast)]
-    pub search: scatterfarm_job::params::SearchMode,
+    #[arg(
+        long,
+        default_value_t = scatterfarm_job::options::SearchMode::Fast,
+        value_parser = crate::args::choice::choice::<scatterfarm_job::options::SearchMode>()
+    )]
+    pub search: scatterfarm_job::options::SearchMode,
     /// Any other job-file key, as KEY=VALUE in TOML (e.g. race_share=0.5,
     /// common_random_numbers=false, level_photons=[400,200]); repeatable.
     #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -86,7 +90,7 @@ pub struct ReconstructBenchArgs {
 
 impl ReconstructBenchArgs {
     /// The job parameters of `scene` under `seed`: the bench's flags, then every `--set`.
-    fn params(&self, scene: &str, seed: u64) -> Result<scatterfarm_job::params::JobParams> {
+    fn params(&self, scene: &str, seed: u64) -> Result<scatterfarm_job::spec::JobSpec> {
         let mut keys = toml::Table::new();
         let mut put = |k: &str, v: toml::Value| {
             keys.insert(k.to_string(), v);
@@ -133,7 +137,7 @@ impl ReconstructBenchArgs {
             put(k, value);
         }
         let text = toml::to_string(&keys)?;
-        scatterfarm_job::params::JobParams::from_toml(&text, std::path::Path::new("--set"))
+        scatterfarm_job::spec::JobSpec::from_toml(&text, std::path::Path::new("--set"))
     }
 }
 

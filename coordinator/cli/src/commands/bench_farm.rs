@@ -22,8 +22,8 @@ use clap::Args;
 use cpu_time::ProcessTime;
 use scatterfarm_engines::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
 use scatterfarm_job::plan::Plan;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::{Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
 use scatterfarm_proto::channel::{Authed, Target};
 use scatterfarm_proto::convert::{counts_to_proto, decode_task, geometry_from_proto};
@@ -494,8 +494,8 @@ async fn replay_worker(
     Ok(())
 }
 
-fn job_params(args: &FarmBenchArgs, index: usize) -> JobParams {
-    JobParams {
+fn job_params(args: &FarmBenchArgs, index: usize) -> JobSpec {
+    JobSpec {
         scene: Some(args.scene.clone()),
         permutations: args.permutations,
         iterations: 1,
@@ -530,7 +530,7 @@ pub fn run(args: FarmBenchArgs) -> Result<()> {
         "bench farm reads the coordinator's CPU time from /proc (Linux only)"
     );
 
-    let params: Vec<JobParams> = (0..args.jobs).map(|i| job_params(&args, i)).collect();
+    let params: Vec<JobSpec> = (0..args.jobs).map(|i| job_params(&args, i)).collect();
     let inputs = Inputs::gather(&params[0], Path::new("."))?;
     let plan = Plan::resolve(&params[0], &inputs).context("the benchmark's job")?;
     let geometry = plan.search_geometry;
@@ -688,7 +688,7 @@ struct Measured {
 /// measures the window.
 async fn measure(
     args: &FarmBenchArgs,
-    params: &[JobParams],
+    params: &[JobSpec],
     inputs: Inputs,
     coordinator: &ChildCoordinator,
     recording: Arc<Recording>,

@@ -9,8 +9,8 @@ use clap::Args;
 use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
 use scatterfarm_job::report::Report;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::channel::Target;
 use scatterfarm_worker::{self as agent, AgentConfig};
 use std::net::SocketAddr;
@@ -36,20 +36,20 @@ pub struct DemoArgs {
 /// The demo's job: the 8×8 built-in scene with the default (fast) search, at a budget two CPU
 /// cores finish in under a minute and at which it finds the truth (seed 1: every pixel; 8
 /// iterations and 2 permutations, the paper search's demo budget, leave it at 93.8 %).
-pub fn demo_params() -> JobParams {
-    JobParams {
+pub fn demo_params() -> JobSpec {
+    JobSpec {
         scene: Some("demo8".into()),
         permutations: 3,
         iterations: 32,
         name: Some("demo".into()),
-        ..JobParams::default()
+        ..JobSpec::default()
     }
 }
 
 /// Finds a stored job with the same parameters and input files.
 fn existing_job(
     farm: &scatterfarm_coordinator::service::Farm,
-    params: &JobParams,
+    params: &JobSpec,
     inputs: &Inputs,
 ) -> Option<String> {
     let core = farm.scheduler();
@@ -73,7 +73,7 @@ fn existing_job(
 /// Runs `params` on an embedded coordinator (data in `data`) and worker, and writes the
 /// outputs into `out`. A job with the same parameters in `data` is resumed, not restarted.
 pub fn run_embedded(
-    params: &JobParams,
+    params: &JobSpec,
     engine: &EngineArgs,
     data: &Path,
     out: &Path,

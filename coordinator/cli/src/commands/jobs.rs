@@ -7,8 +7,8 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use scatterfarm_coordinator::status::{duration_text, state_name};
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
 use scatterfarm_job::plan::Plan;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::channel::{Authed, Target};
 use scatterfarm_proto::convert::fingerprint_from_proto;
 use scatterfarm_proto::v1 as pb;
@@ -52,10 +52,10 @@ pub struct SubmitArgs {
 }
 
 /// Reads a job file and the files it names, and checks the job as the coordinator will.
-pub fn read_job(path: &Path) -> Result<(JobParams, Inputs)> {
+pub fn read_job(path: &Path) -> Result<(JobSpec, Inputs)> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the job file {}", path.display()))?;
-    let params = JobParams::from_toml(&text, path)?;
+    let params = JobSpec::from_toml(&text, path)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let inputs =
         Inputs::gather(&params, base).with_context(|| format!("job file {}", path.display()))?;
@@ -64,7 +64,7 @@ pub fn read_job(path: &Path) -> Result<(JobParams, Inputs)> {
 }
 
 /// Sends a job; returns its id.
-pub async fn submit(client: &mut Client, params: &JobParams, inputs: Inputs) -> Result<String> {
+pub async fn submit(client: &mut Client, params: &JobSpec, inputs: Inputs) -> Result<String> {
     let request = pb::SubmitRequest {
         job_toml: params.to_toml()?,
         files: inputs

@@ -5,15 +5,16 @@
 //! farm's embedded path (a coordinator and a worker in this process, over gRPC on loopback) and
 //! keeps its state in DIR, so an interrupted run resumes where it stood.
 
+use crate::args::job::JobArgs;
 use crate::engines::EngineArgs;
 use anyhow::{Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::outcome::{self, Summary};
-use scatterfarm_job::params::JobParams;
 use scatterfarm_job::plan::Plan;
 use scatterfarm_job::report::Report;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::Engine;
 use scatterfarm_search::driver::{self, Consumption};
 use scatterfarm_search::Search;
@@ -23,7 +24,7 @@ use std::time::Instant;
 #[derive(Debug, Clone, Args)]
 pub struct ReconstructArgs {
     #[command(flatten)]
-    pub params: JobParams,
+    pub job: JobArgs,
     #[command(flatten)]
     pub engine: EngineArgs,
     /// The output folder.
@@ -40,7 +41,7 @@ pub struct ReconstructArgs {
 
 /// Reconstructs in this process with `engine` and writes the outputs into `out`.
 pub fn run_in_process(
-    params: &JobParams,
+    params: &JobSpec,
     engine: &dyn Engine,
     out: &Path,
     quiet: bool,
@@ -103,16 +104,17 @@ pub fn run_in_process(
 }
 
 pub fn run(args: ReconstructArgs) -> Result<()> {
+    let spec = args.job.into_spec();
     let report = match &args.data {
         None => {
             // Every check that needs no engine runs before the adapter starts.
-            let inputs = Inputs::gather(&args.params, Path::new("."))?;
-            Plan::resolve(&args.params, &inputs)?;
+            let inputs = Inputs::gather(&spec, Path::new("."))?;
+            Plan::resolve(&spec, &inputs)?;
             let engine = args.engine.open()?;
-            run_in_process(&args.params, engine.as_ref(), &args.out, args.quiet)?
+            run_in_process(&spec, engine.as_ref(), &args.out, args.quiet)?
         }
         Some(data) => crate::commands::demo::run_embedded(
-            &args.params,
+            &spec,
             &args.engine,
             data,
             &args.out,

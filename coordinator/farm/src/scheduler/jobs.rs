@@ -3,11 +3,11 @@
 use super::{Refusal, Scheduler, STRIKES};
 use crate::job::Job;
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
+use scatterfarm_job::spec::JobSpec;
 
 impl Scheduler {
     /// Validates and stores a job; returns its id.
-    pub fn submit(&mut self, params: JobParams, inputs: Inputs) -> Result<String, Refusal> {
+    pub fn submit(&mut self, params: JobSpec, inputs: Inputs) -> Result<String, Refusal> {
         let id = self.store.new_job_id().map_err(anyhow::Error::from)?;
         let job = Job::submit(id.clone(), params, inputs, self.store.as_ref())
             .map_err(|e| Refusal::Invalid(format!("{e:#}")))?;

@@ -5,7 +5,7 @@ use super::Farm;
 use crate::job::Phase;
 use crate::status::{is_terminal, job_status};
 use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::params::JobParams;
+use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::convert::fingerprint_to_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::client_service_server::ClientService;
@@ -28,7 +28,7 @@ impl ClientService for ClientApi {
         request: Request<pb::SubmitRequest>,
     ) -> Result<Response<pb::SubmitResponse>, Status> {
         let r = request.into_inner();
-        let params = JobParams::from_toml(&r.job_toml, Path::new("the submitted job"))
+        let params = JobSpec::from_toml(&r.job_toml, Path::new("the submitted job"))
             .map_err(|e| Status::invalid_argument(format!("{e:#}")))?;
         let inputs = Inputs {
             files: r.files.into_iter().map(|(k, v)| (k, v.to_vec())).collect(),

@@ -36,12 +36,10 @@ pub struct Photons {
     /// finer level. Never empty in a running search.
     pub per_level: Vec<u32>,
     /// Racing, when on.
-    #[serde(default)]
     pub race: Option<Race>,
     /// Re-scoring, when on: photons per source with which a level's distinct finalists (the
     /// final assignment of each permutation, and the level's starting map) are rendered again
     /// on one fresh seed, the level's result being the best of those renders.
-    #[serde(default)]
     pub rescore: Option<u32>,
 }
 

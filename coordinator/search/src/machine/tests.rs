@@ -560,47 +560,6 @@ fn every_option_at_once_restores_at_every_step_boundary() {
 }
 
 #[test]
-fn checkpoints_of_older_releases_resume_to_the_same_result() {
-    let truth: Vec<u16> = vec![0, 1, 1, 0, 0, 2, 2, 1, 0, 0, 0, 1, 2, 0, 1, 0];
-    let scorer = truth_scorer(&truth);
-    let mut alone = search(4, 2, 11, vec![0, 1, 2]);
-    run_to_end(&mut alone, &scorer);
-    let mut s = search(4, 2, 11, vec![0, 1, 2]);
-    let config = s.config().clone();
-    let mut steps = 0;
-    while !s.is_finished() {
-        // Written as the release before photon budgets wrote it: no photons anywhere, no
-        // `waiting`, `pending_step2` instead.
-        let mut v = serde_json::to_value(&s).unwrap();
-        let step2 = match &v["waiting"] {
-            serde_json::Value::Object(w) => w
-                .get("Step")
-                .and_then(|st| st["step2_from"].as_u64())
-                .map(|from| (from as usize) < s.pending().len()),
-            _ => None,
-        };
-        let Some(step2) = step2 else {
-            panic!("a paper search only waits for steps: {}", v["waiting"]);
-        };
-        let o = v.as_object_mut().unwrap();
-        o.remove("waiting");
-        o.insert("pending_step2".into(), step2.into());
-        o["config"].as_object_mut().unwrap().remove("photons");
-        for r in o["pending"].as_array_mut().unwrap() {
-            r.as_object_mut().unwrap().remove("photons");
-        }
-        s = serde_json::from_value(v).unwrap();
-        s.upgrade(&config);
-        assert!(s.pending().iter().all(|r| r.photons == 100));
-        let scores: Vec<f64> = s.pending().iter().map(&scorer).collect();
-        s.submit(&scores).unwrap();
-        steps += 1;
-    }
-    assert!(steps > 10);
-    assert_eq!(s.levels(), alone.levels());
-}
-
-#[test]
 fn scores_within_tie_z_standard_errors_tie_as_in_the_paper() {
     let config = SearchConfig {
         tie_z: 2.0,

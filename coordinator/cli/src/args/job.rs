@@ -1,0 +1,155 @@
+//! `reconstruct`'s job flags and how they map onto the job spec: the flags are the command
+//! line's business, the [`JobSpec`] is what a job file, the coordinator and its store read.
+
+use super::choice::choice;
+use clap::Args;
+use scatterfarm_job::options::{SearchMode, TiebreakMetric};
+use scatterfarm_job::spec::{
+    JobSpec, DEFAULT_ITERATIONS, DEFAULT_PERCENTILE, DEFAULT_PERMUTATIONS,
+    DEFAULT_PHOTONS_PER_ITERATION, DEFAULT_SEED,
+};
+use scatterfarm_search::similarity::Metric;
+use std::path::PathBuf;
+
+/// `reconstruct`'s job flags, as given: each maps onto the [`JobSpec`] key of the same name
+/// (dashes as underscores), which a job file gives instead.
+#[derive(Debug, Clone, Args)]
+pub struct JobArgs {
+    /// Synthesize the target from this scene (a file or a built-in name); its map is the truth.
+    #[arg(long, conflicts_with = "target", required_unless_present = "target")]
+    pub scene: Option<String>,
+    /// A captured observation set (NPY with its JSON sidecar) to reconstruct instead.
+    #[arg(long, requires = "calibration")]
+    pub target: Option<PathBuf>,
+    /// A capture of a known homogeneous material (NPY with sidecar), to calibrate ε for --target.
+    #[arg(long, requires = "target")]
+    pub calibration: Option<PathBuf>,
+    /// The calibration material's name (default: the first dictionary material that scatters).
+    #[arg(long)]
+    pub calibration_material: Option<String>,
+    /// Candidate materials, comma-separated names (default: the scene's own materials).
+    #[arg(long, value_delimiter = ',', conflicts_with = "random_materials")]
+    pub dictionary: Option<Vec<String>>,
+    /// Unknown materials: draw this many random materials per level instead of a dictionary.
+    #[arg(long)]
+    pub random_materials: Option<u32>,
+    /// Bounds of random materials, e.g. sigma_s=0:1,sigma_a=0:0.03,g=0:1.
+    #[arg(long, requires = "random_materials")]
+    pub bounds: Option<String>,
+    /// Random permutations per level (the paper's T).
+    #[arg(long, default_value_t = DEFAULT_PERMUTATIONS)]
+    pub permutations: u32,
+    /// Simulation iterations per render.
+    #[arg(long, default_value_t = DEFAULT_ITERATIONS)]
+    pub iterations: u32,
+    /// Photons per source per iteration.
+    #[arg(long, default_value_t = DEFAULT_PHOTONS_PER_ITERATION)]
+    pub photons_per_iteration: u32,
+    /// Photons per source of a synthesized target (default: iterations × photons per iteration).
+    #[arg(long)]
+    pub target_photons: Option<u32>,
+    /// ε is this percentile of the calibration differences.
+    #[arg(long, default_value_t = DEFAULT_PERCENTILE)]
+    pub percentile: f64,
+    /// The similarity metric.
+    #[arg(long, value_name = "METRIC", value_parser = choice::<Metric>())]
+    pub metric: Option<Metric>,
+    /// Search at this grid (a power of two, at most the scene's); default: the scene's grid,
+    /// or 16 for a captured target.
+    #[arg(long)]
+    pub grid: Option<u32>,
+    /// Override the boundary positions (target and search alike).
+    #[arg(long)]
+    pub positions: Option<u32>,
+    /// Override the directions per position (target and search alike).
+    #[arg(long)]
+    pub directions: Option<u32>,
+    /// The job seed: every random stream derives from it.
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    pub seed: u64,
+    /// The search: the faster one, or the paper's exactly. The options below switch one
+    /// improvement on or off in either mode; `fast` changes their defaults (given after each
+    /// as "fast: …").
+    #[arg(long, default_value_t = SearchMode::Fast, value_parser = choice::<SearchMode>())]
+    pub search: SearchMode,
+    /// Common random numbers: every render of a level on one seed (fast: true).
+    #[arg(long, value_name = "BOOL")]
+    pub common_random_numbers: Option<bool>,
+    /// Request all M⁰-variants of a permutation (its step-2 renders) at once when it starts,
+    /// so they render in parallel (fast: true).
+    #[arg(long, value_name = "BOOL")]
+    pub early_step2: Option<bool>,
+    /// Photons per source of each level's renders, from level 0, comma-separated; the last
+    /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
+    #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
+    pub level_photons: Option<Vec<u32>>,
+    /// Racing: render every candidate first with this share of the level's photons and
+    /// spend the rest on the contenders; 1 turns it off (paper: 1; fast: 0.25).
+    #[arg(long, value_name = "SHARE")]
+    pub race_share: Option<f64>,
+    /// Racing drops a candidate whose first-stage score is this many standard errors behind
+    /// the leader's (fast: 3).
+    #[arg(long, value_name = "Z")]
+    pub race_z: Option<f64>,
+    /// Re-score a level's distinct finalists (each permutation's result, and the level's
+    /// starting map) on one fresh seed with this many photons per source and keep the best;
+    /// 0 turns it off (paper: 0; fast: iterations × photons per iteration).
+    #[arg(long, value_name = "N")]
+    pub rescore_photons: Option<u32>,
+    /// Scores closer than this many standard errors of their difference tie: a tie inside a
+    /// step goes to the earlier candidate, between the steps to step 2, as in the paper's
+    /// exact ties (paper: 0; fast: 1).
+    #[arg(long, value_name = "Z")]
+    pub tie_z: Option<f64>,
+    /// Where within-ε is saturated (see --tiebreak-saturation), this metric decides between
+    /// candidates tied on it; `off` keeps the paper's tie rule alone (paper: off; fast:
+    /// l2-stabilized).
+    #[arg(long, value_name = "METRIC", value_parser = choice::<TiebreakMetric>())]
+    pub tiebreak: Option<TiebreakMetric>,
+    /// The tiebreak must win by more than this many standard errors of the difference
+    /// (fast: 1).
+    #[arg(long, value_name = "Z")]
+    pub tiebreak_z: Option<f64>,
+    /// Within-ε counts as saturated for a map that misses at most this many times the share
+    /// of observations a perfect map misses (1 − percentile/100): the tiebreak decides only
+    /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
+    #[arg(long, value_name = "FACTOR")]
+    pub tiebreak_saturation: Option<f64>,
+}
+
+impl JobArgs {
+    /// The job spec these flags give (the spec checks its values when a plan resolves it).
+    pub fn into_spec(self) -> JobSpec {
+        JobSpec {
+            scene: self.scene,
+            target: self.target,
+            calibration: self.calibration,
+            calibration_material: self.calibration_material,
+            dictionary: self.dictionary,
+            random_materials: self.random_materials,
+            bounds: self.bounds,
+            permutations: self.permutations,
+            iterations: self.iterations,
+            photons_per_iteration: self.photons_per_iteration,
+            target_photons: self.target_photons,
+            percentile: self.percentile,
+            metric: self.metric,
+            grid: self.grid,
+            positions: self.positions,
+            directions: self.directions,
+            seed: self.seed,
+            search: self.search,
+            common_random_numbers: self.common_random_numbers,
+            early_step2: self.early_step2,
+            level_photons: self.level_photons,
+            race_share: self.race_share,
+            race_z: self.race_z,
+            rescore_photons: self.rescore_photons,
+            tie_z: self.tie_z,
+            tiebreak: self.tiebreak,
+            tiebreak_z: self.tiebreak_z,
+            tiebreak_saturation: self.tiebreak_saturation,
+            ..JobSpec::default()
+        }
+    }
+}

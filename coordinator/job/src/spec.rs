@@ -1,0 +1,273 @@
+//! The job spec: what to reconstruct and how, as one versioned serde type. A job file, the
+//! text a submission sends to the coordinator and the coordinator's stored record are all this
+//! type, so renaming a command-line flag (the binary maps its flags onto it) never changes what
+//! is stored. Resolving its search options is [`crate::options`]'s job.
+
+use crate::options::{SearchMode, TiebreakMetric};
+use anyhow::{Context, Result};
+use scatterfarm_search::similarity::Metric;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The layout of [`JobSpec`] this build reads and writes.
+pub const SPEC_VERSION: u32 = 1;
+/// The paper's T.
+pub const DEFAULT_PERMUTATIONS: u32 = 10;
+/// The paper's iterations per render.
+pub const DEFAULT_ITERATIONS: u32 = 100;
+/// The paper's photons per source per iteration.
+pub const DEFAULT_PHOTONS_PER_ITERATION: u32 = 512;
+/// The paper's k.
+pub const DEFAULT_PERCENTILE: f64 = 99.9;
+/// The default job seed.
+pub const DEFAULT_SEED: u64 = 1;
+
+/// What to reconstruct and how: a job file's keys, the wire text and the stored record. See
+/// `scatterfarm reconstruct --help` for each key (its flag is the key with dashes).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct JobSpec {
+    /// The spec's layout ([`SPEC_VERSION`]); a job file may leave it out.
+    pub version: u32,
+    /// Synthesize the target from this scene (a file or a built-in name); its map is the truth.
+    pub scene: Option<String>,
+    /// A captured observation set (NPY with its JSON sidecar) to reconstruct instead.
+    pub target: Option<PathBuf>,
+    /// A capture of a known homogeneous material (NPY with sidecar), to calibrate ε for --target.
+    pub calibration: Option<PathBuf>,
+    /// The calibration material's name (default: the first dictionary material that scatters).
+    pub calibration_material: Option<String>,
+    /// Candidate materials, comma-separated names (default: the scene's own materials).
+    pub dictionary: Option<Vec<String>>,
+    /// Unknown materials: draw this many random materials per level instead of a dictionary.
+    pub random_materials: Option<u32>,
+    /// Bounds of random materials, e.g. sigma_s=0:1,sigma_a=0:0.03,g=0:1.
+    pub bounds: Option<String>,
+    /// Random permutations per level (the paper's T).
+    pub permutations: u32,
+    /// Simulation iterations per render.
+    pub iterations: u32,
+    /// Photons per source per iteration.
+    pub photons_per_iteration: u32,
+    /// Photons per source of a synthesized target (default: iterations × photons per iteration).
+    pub target_photons: Option<u32>,
+    /// ε is this percentile of the calibration differences.
+    pub percentile: f64,
+    /// The similarity metric.
+    pub metric: Option<Metric>,
+    /// Search at this grid (a power of two, at most the scene's); default: the scene's grid,
+    /// or 16 for a captured target.
+    pub grid: Option<u32>,
+    /// Override the boundary positions (target and search alike).
+    pub positions: Option<u32>,
+    /// Override the directions per position (target and search alike).
+    pub directions: Option<u32>,
+    /// The job seed: every random stream derives from it.
+    pub seed: u64,
+    /// The search: the faster one, or the paper's exactly. The options below switch one
+    /// improvement on or off in either mode; `fast` changes their defaults (given after each
+    /// as "fast: …").
+    pub search: SearchMode,
+    /// Common random numbers: every render of a level on one seed (fast: true).
+    pub common_random_numbers: Option<bool>,
+    /// Request all M⁰-variants of a permutation (its step-2 renders) at once when it starts,
+    /// so they render in parallel (fast: true).
+    pub early_step2: Option<bool>,
+    /// Photons per source of each level's renders, from level 0, comma-separated; the last
+    /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
+    pub level_photons: Option<Vec<u32>>,
+    /// Racing: render every candidate first with this share of the level's photons and
+    /// spend the rest on the contenders; 1 turns it off (paper: 1; fast: 0.25).
+    pub race_share: Option<f64>,
+    /// Racing drops a candidate whose first-stage score is this many standard errors behind
+    /// the leader's (fast: 3).
+    pub race_z: Option<f64>,
+    /// Re-score a level's distinct finalists (each permutation's result, and the level's
+    /// starting map) on one fresh seed with this many photons per source and keep the best;
+    /// 0 turns it off (paper: 0; fast: iterations × photons per iteration).
+    pub rescore_photons: Option<u32>,
+    /// Scores closer than this many standard errors of their difference tie: a tie inside a
+    /// step goes to the earlier candidate, between the steps to step 2, as in the paper's
+    /// exact ties (paper: 0; fast: 1).
+    pub tie_z: Option<f64>,
+    /// Where within-ε is saturated (see --tiebreak-saturation), this metric decides between
+    /// candidates tied on it; `off` keeps the paper's tie rule alone (paper: off; fast:
+    /// l2-stabilized).
+    pub tiebreak: Option<TiebreakMetric>,
+    /// The tiebreak must win by more than this many standard errors of the difference
+    /// (fast: 1).
+    pub tiebreak_z: Option<f64>,
+    /// Within-ε counts as saturated for a map that misses at most this many times the share
+    /// of observations a perfect map misses (1 − percentile/100): the tiebreak decides only
+    /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
+    pub tiebreak_saturation: Option<f64>,
+    /// A label for job listings (job files only, no flag).
+    pub name: Option<String>,
+    /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
+    pub engine_fingerprint: Option<String>,
+    /// Let any engine render the job: faster, but not reproducible (job files only, no flag).
+    pub any_engine: bool,
+}
+
+impl Default for JobSpec {
+    fn default() -> Self {
+        JobSpec {
+            version: SPEC_VERSION,
+            scene: None,
+            target: None,
+            calibration: None,
+            calibration_material: None,
+            dictionary: None,
+            random_materials: None,
+            bounds: None,
+            permutations: DEFAULT_PERMUTATIONS,
+            iterations: DEFAULT_ITERATIONS,
+            photons_per_iteration: DEFAULT_PHOTONS_PER_ITERATION,
+            target_photons: None,
+            percentile: DEFAULT_PERCENTILE,
+            metric: None,
+            grid: None,
+            positions: None,
+            directions: None,
+            seed: DEFAULT_SEED,
+            search: SearchMode::Fast,
+            common_random_numbers: None,
+            early_step2: None,
+            level_photons: None,
+            race_share: None,
+            race_z: None,
+            rescore_photons: None,
+            tie_z: None,
+            tiebreak: None,
+            tiebreak_z: None,
+            tiebreak_saturation: None,
+            name: None,
+            engine_fingerprint: None,
+            any_engine: false,
+        }
+    }
+}
+
+impl JobSpec {
+    /// That this build reads the spec's layout.
+    pub fn check_version(&self) -> Result<()> {
+        anyhow::ensure!(
+            self.version == SPEC_VERSION,
+            "`version` is {}, this build reads job specs of version {SPEC_VERSION}",
+            self.version
+        );
+        Ok(())
+    }
+
+    /// Parses a job file's text; `path` names it in errors (TOML errors carry line and column).
+    pub fn from_toml(text: &str, path: &Path) -> Result<JobSpec> {
+        let params: JobSpec =
+            toml::from_str(text).with_context(|| format!("job file {}", path.display()))?;
+        params
+            .check_version()
+            .with_context(|| format!("job file {}", path.display()))?;
+        anyhow::ensure!(
+            params.scene.is_some() != params.target.is_some(),
+            "job file {}: give exactly one of `scene` and `target`",
+            path.display()
+        );
+        anyhow::ensure!(
+            params.target.is_none() || params.calibration.is_some(),
+            "job file {}: `target` needs `calibration` (a capture of a known homogeneous material)",
+            path.display()
+        );
+        anyhow::ensure!(
+            !(params.dictionary.is_some() && params.random_materials.is_some()),
+            "job file {}: give `dictionary` or `random_materials`, not both",
+            path.display()
+        );
+        Ok(params)
+    }
+
+    /// The job file text of this spec (also its wire form): `version`, `search` and the keys
+    /// that differ from the defaults, so a coordinator of an older release (which refuses keys
+    /// it does not know) still reads it unless the job uses something new.
+    pub fn to_toml(&self) -> Result<String> {
+        let full = toml::Value::try_from(self).context("cannot write the job spec as TOML")?;
+        let defaults = toml::Value::try_from(JobSpec::default())
+            .context("cannot write the default job spec as TOML")?;
+        let mut table = match full {
+            toml::Value::Table(t) => t,
+            _ => anyhow::bail!("the job spec is not a TOML table"),
+        };
+        if let toml::Value::Table(d) = defaults {
+            // `version` and `search` always: a reader of a later layout, or with another
+            // default search, still reads this job as it was meant.
+            table.retain(|k, v| k == "version" || k == "search" || d.get(k) != Some(v));
+        }
+        toml::to_string(&table).context("cannot write the job spec as TOML")
+    }
+
+    /// The input files these parameters name: a scene file (when `scene` is not a built-in
+    /// name), the target and calibration NPYs and their JSON sidecars.
+    pub fn input_paths(&self) -> Vec<PathBuf> {
+        let mut paths = Vec::new();
+        if let Some(s) = &self.scene {
+            if scatterfarm_model::builtin::toml(s).is_none() {
+                paths.push(PathBuf::from(s));
+            }
+        }
+        for p in [&self.target, &self.calibration].into_iter().flatten() {
+            paths.push(p.clone());
+            paths.push(crate::observation::sidecar_path(p));
+        }
+        paths
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn job_files_take_the_flags_keys_and_defaults() {
+        let p = JobSpec::from_toml(
+            "scene = \"fig7a\"\npermutations = 3\nphotons_per_iteration = 64\nmetric = \"l2\"\n",
+            Path::new("j.toml"),
+        )
+        .unwrap();
+        assert_eq!(p.scene.as_deref(), Some("fig7a"));
+        assert_eq!(p.permutations, 3);
+        assert_eq!(p.iterations, DEFAULT_ITERATIONS);
+        assert_eq!(p.metric, Some(Metric::L2));
+        let text = p.to_toml().unwrap();
+        assert!(
+            !text.contains("iterations ="),
+            "defaults are left out: {text}"
+        );
+        // But always the version and the search.
+        assert!(text.contains("search = \"fast\""), "{text}");
+        assert!(text.contains("version = 1"), "{text}");
+        let back = JobSpec::from_toml(&text, Path::new("k.toml")).unwrap();
+        assert_eq!(back, p);
+    }
+
+    #[test]
+    fn bad_job_files_say_where() {
+        let err = JobSpec::from_toml("scene = \"a\"\npermutation = 3\n", Path::new("j.toml"))
+            .unwrap_err();
+        let text = format!("{err:#}");
+        assert!(
+            text.contains("j.toml") && text.contains("permutation"),
+            "{text}"
+        );
+        assert!(text.contains("line 2"), "{text}");
+        let err = JobSpec::from_toml("permutations = 3\n", Path::new("j.toml")).unwrap_err();
+        assert!(format!("{err:#}").contains("exactly one of"));
+        let err = JobSpec::from_toml("scene = \"a\"\niterations = \"x\"\n", Path::new("j.toml"))
+            .unwrap_err();
+        assert!(format!("{err:#}").contains("iterations"));
+        let err =
+            JobSpec::from_toml("version = 7\nscene = \"a\"\n", Path::new("j.toml")).unwrap_err();
+        let text = format!("{err:#}");
+        assert!(
+            text.contains("j.toml") && text.contains("`version` is 7"),
+            "{text}"
+        );
+    }
+}
