@@ -16,6 +16,7 @@
 use super::adapters::{choose, enumerate, new_instance, AdapterInfo, AdapterSelector};
 use super::plan::{self, Chunk, Shape};
 use super::{block_on, shader_source, SHADER_HASH};
+use crate::rules::{start_pixel, uniform_block_levels, CORNER_TOLERANCE_F32};
 use scatterfarm_model::engine::{
     validate_batch, CountMatrix, Engine, EngineError, EngineFingerprint, RenderBatch, RenderItem,
     RenderOutput,
@@ -29,16 +30,6 @@ use wgpu::util::DeviceExt;
 /// Bumped whenever a change outside the shader changes this engine's counts (a shader change
 /// changes [`SHADER_HASH`], which the fingerprint carries too).
 pub const GPU_ENGINE_VERSION: &str = "gpu-1";
-
-/// Two grid-line crossings closer than this fraction of the medium's side `W` are one diagonal
-/// step through a corner, and a point this close to a grid line lies on it. The shader's
-/// coordinates and distances are f32 values up to ~√2·W, each good to a few ulps (an ulp is
-/// ~1.2e-7·W); this is ~70 ulps, far below any pixel of a valid grid (N ≤ 4096).
-pub const CORNER_TOLERANCE_F32: f64 = 8e-6;
-
-/// A source coordinate within this fraction of a pixel of a grid line lies on it (as the CPU
-/// tracer; computed on the host in f64).
-const GRID_LINE_TOLERANCE: f64 = 1e-9;
 
 /// The largest HG `c = (1−g)/(1+g)` the shader gets: beyond it (g within 2e-18 of −1) the turn
 /// is a full reversal to f32 precision, and c² must not overflow f32.
@@ -630,6 +621,7 @@ impl HostLayout {
         for i in 0..geo.sources() {
             let ray = geo.source_ray(i);
             let (ix, iy) = start_pixel(&geo, ray.origin, ray.direction);
+            let (ix, iy) = (ix as u32, iy as u32);
             for v in [
                 ray.origin[0],
                 ray.origin[1],
@@ -650,7 +642,7 @@ impl HostLayout {
             let pixels: Vec<u16> = (0..n)
                 .flat_map(|iy| assignment[(n - 1 - iy) * n..(n - iy) * n].iter().copied())
                 .collect();
-            let levels = block_levels(&pixels, n);
+            let levels = uniform_block_levels(&pixels, n);
             let mut bytes = Vec::with_capacity(n * n * plan::PIXEL_BYTES as usize);
             for (&m, &level) in pixels.iter().zip(&levels) {
                 // validate_batch checked every index against the table.
@@ -671,41 +663,6 @@ impl HostLayout {
             seeds,
         }
     }
-}
-
-/// Per pixel of an `n × n` grid of material indices (row-major), the level `L` of the largest
-/// aligned `2^L × 2^L` block around it whose pixels all hold one material. Aligned blocks nest,
-/// so every pixel of such a block has the same level.
-pub(crate) fn block_levels(pixels: &[u16], n: usize) -> Vec<u8> {
-    let mut levels = vec![0u8; n * n];
-    // uniform[b] for the blocks of the current level, (n / side)² of them, row-major.
-    let mut uniform = vec![true; n * n];
-    let mut side = 1;
-    let mut level = 0u8;
-    while side < n {
-        let (child, blocks) = (n / side, n / (2 * side));
-        let next: Vec<bool> = (0..blocks * blocks)
-            .map(|b| {
-                let (by, bx) = (b / blocks, b % blocks);
-                let kids =
-                    [(0, 0), (0, 1), (1, 0), (1, 1)].map(|(dy, dx)| (2 * by + dy, 2 * bx + dx));
-                let first = pixels[2 * by * side * n + 2 * bx * side];
-                kids.iter().all(|&(y, x)| {
-                    uniform[y * child + x] && pixels[y * side * n + x * side] == first
-                })
-            })
-            .collect();
-        side *= 2;
-        level += 1;
-        for (b, _) in next.iter().enumerate().filter(|(_, &u)| u) {
-            let (by, bx) = (b / blocks, b % blocks);
-            for y in by * side..(by + 1) * side {
-                levels[y * n + bx * side..y * n + (bx + 1) * side].fill(level);
-            }
-        }
-        uniform = next;
-    }
-    levels
 }
 
 /// One material as the shader reads it.
@@ -737,31 +694,4 @@ impl CellMaterial {
             },
         }
     }
-}
-
-/// The pixel (column, row from the bottom) a source ray starts in, as the CPU tracer finds it: a
-/// coordinate on a grid line belongs to the pixel the ray moves into along that axis, or, for a
-/// ray running along the line, to the pixel on its left (`model.md`, "Rays along grid lines").
-pub(crate) fn start_pixel(geo: &Geometry, origin: [f64; 2], dir: [f64; 2]) -> (u32, u32) {
-    let h = geo.pixel_size();
-    let n = i64::from(geo.grid);
-    let index = |x: f64, dx: f64, left: f64| -> u32 {
-        let u = x / h;
-        let line = u.round();
-        let i = if (u - line).abs() <= GRID_LINE_TOLERANCE {
-            let side = if dx != 0.0 { dx } else { left };
-            if side > 0.0 {
-                line as i64
-            } else {
-                line as i64 - 1
-            }
-        } else {
-            u.floor() as i64
-        };
-        i.clamp(0, n - 1) as u32
-    };
-    (
-        index(origin[0], dir[0], -dir[1]),
-        index(origin[1], dir[1], dir[0]),
-    )
 }
