@@ -5,7 +5,7 @@
 //! groups and records dispatches ([`super::submission`]).
 
 use super::adapters::AdapterInfo;
-use super::records::{PARAMS_BYTES, SOURCE_BYTES};
+use super::records::{PARAMS_BYTES, SEED_BYTES, SOURCE_BYTES};
 use super::{block_on, dispatch_plan, shader_source};
 use scatterfarm_model::engine::EngineError;
 use std::sync::{Arc, Mutex};
@@ -165,7 +165,7 @@ fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
             layout_entry(0, wgpu::BufferBindingType::Uniform, true, PARAMS_BYTES),
             storage(1, true, SOURCE_BYTES),
             storage(2, true, dispatch_plan::PIXEL_BYTES),
-            storage(3, true, 8),
+            storage(3, true, SEED_BYTES),
             storage(4, false, 4),
             storage(5, false, 8),
         ],

@@ -126,6 +126,8 @@ impl GpuEngine {
         &self.info
     }
 
+    /// The engine on `adapter`: checks the workgroup size fits, then opens the device and
+    /// builds the pipeline ([`GpuDevice::open`]).
     fn open(
         adapter: &wgpu::Adapter,
         info: AdapterInfo,

@@ -116,6 +116,9 @@ pub(crate) const PARAMS_BYTES: u64 = std::mem::size_of::<Params>() as u64;
 /// Bytes of one source record.
 pub(crate) const SOURCE_BYTES: u64 = std::mem::size_of::<Source>() as u64;
 
+/// Bytes of one item's seed.
+pub(crate) const SEED_BYTES: u64 = std::mem::size_of::<Seed>() as u64;
+
 /// One pixel of the medium buffer (`vec4<f32>`): σt or −1 for opaque, uniform-block level,
 /// σa/σt, HG c or −1 for g = −1.
 pub(crate) type Pixel = [f32; 4];
@@ -230,7 +233,6 @@ impl CellMaterial {
 #[cfg(test)]
 mod tests {
     use super::super::device::WORKGROUP_SIZE;
-    use super::super::dispatch_plan::PIXEL_BYTES;
     use super::super::shader_source;
     use super::*;
     use naga::{Expression, Literal, Module, ScalarKind, Type, TypeInner};
@@ -316,7 +318,6 @@ mod tests {
             (4, 4),
             (5, 4),
         ];
-        assert_eq!(PIXEL_BYTES as usize, std::mem::size_of::<Pixel>());
         assert_eq!(
             PARAMS_BYTES % 16,
             0,
