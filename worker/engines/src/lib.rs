@@ -4,6 +4,8 @@
 //!
 //! - [`rng`]: Philox4x32-10, the counter-based generator keyed by (seed, source, photon).
 //! - [`phase`]: flatland Henyey–Greenstein sampling.
+//! - [`rules`]: the transport rules both engines apply on the host (tolerances, the grid-line
+//!   start rule, uniform blocks), defined once.
 //! - [`transport`]: one photon's path through the pixel grid (the CPU engine's, mirrored by the
 //!   shader).
 //! - [`cpu`]: the rayon CPU engine.
@@ -13,6 +15,7 @@ pub mod cpu;
 pub mod gpu;
 pub mod phase;
 pub mod rng;
+pub mod rules;
 pub mod transport;
 
 pub use cpu::CpuEngine;

@@ -17,15 +17,9 @@
 
 use crate::phase::{turn, HgTurn};
 use crate::rng::{ln_open01, PhotonStream};
+use crate::rules::{start_pixel, uniform_block_levels, CORNER_TOLERANCE};
 use scatterfarm_model::geometry::{Edge, ExitBins, Geometry, Ray};
 use scatterfarm_model::material::Material;
-
-/// Two grid-line crossings closer than this fraction of a pixel are one diagonal step through
-/// the corner: the zero-length pass through the side pixel neither enters nor is absorbed by it.
-pub const CORNER_TOLERANCE: f64 = 1e-9;
-
-/// A source coordinate within this fraction of a pixel of a grid line lies on it.
-const GRID_LINE_TOLERANCE: f64 = 1e-9;
 
 /// One pixel's material, in the form the tracer uses.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -171,60 +165,40 @@ impl Medium {
     }
 }
 
-/// Covers the grid with the largest aligned power-of-two squares of equal cells: returns each
-/// cell's block index and the blocks.
+/// Covers the grid with the largest aligned power-of-two squares of equal cells
+/// ([`uniform_block_levels`]): returns each cell's block index and the blocks.
 fn homogeneous_blocks(geometry: &Geometry, cells: &[Cell]) -> (Vec<u32>, Vec<Block>) {
     let n = geometry.grid as usize;
     let h = geometry.pixel_size();
-    let levels = n.trailing_zeros() as usize;
-    // uniform[k][by * (n >> k) + bx]: the 2^k block (bx, by) holds one material.
-    let mut uniform: Vec<Vec<bool>> = vec![vec![true; n * n]];
-    for k in 1..=levels {
-        let side = n >> k;
-        let below = &uniform[k - 1];
-        let mut level = vec![false; side * side];
-        for by in 0..side {
-            for bx in 0..side {
-                let child = |dx: usize, dy: usize| (2 * by + dy) * (2 * side) + 2 * bx + dx;
-                let corner = |dx: usize, dy: usize| {
-                    let size = 1 << (k - 1);
-                    cells[((2 * by + dy) * size) * n + (2 * bx + dx) * size]
-                };
-                let all_uniform = (0..4).all(|c| below[child(c & 1, c >> 1)]);
-                level[by * side + bx] =
-                    all_uniform && (1..4).all(|c| corner(c & 1, c >> 1) == corner(0, 0));
-            }
-        }
-        uniform.push(level);
-    }
+    let whole = n.trailing_zeros() as u8;
+    let levels = uniform_block_levels(cells, n);
     let mut block_of = vec![u32::MAX; n * n];
     let mut blocks = Vec::new();
-    for k in (0..=levels).rev() {
-        let side = n >> k;
-        let size = 1usize << k;
-        for by in 0..side {
-            for bx in 0..side {
-                let (x0, y0) = (bx * size, by * size);
-                if !uniform[k][by * side + bx] || block_of[y0 * n + x0] != u32::MAX {
-                    continue;
-                }
-                let id = blocks.len() as u32;
-                for iy in y0..y0 + size {
-                    block_of[iy * n + x0..iy * n + x0 + size].fill(id);
-                }
-                let (last_x, last_y) = (x0 + size - 1, y0 + size - 1);
-                blocks.push(Block {
-                    lo: [x0 as f64 * h, y0 as f64 * h],
-                    hi: if k == levels {
-                        [geometry.size_mm; 2]
-                    } else {
-                        [(last_x + 1) as f64 * h, (last_y + 1) as f64 * h]
-                    },
-                    first: [x0 as i64, y0 as i64],
-                    last: [last_x as i64, last_y as i64],
-                    whole: k == levels,
-                });
+    for iy in 0..n {
+        for ix in 0..n {
+            if block_of[iy * n + ix] != u32::MAX {
+                continue;
             }
+            // Scanning row by row from the bottom left meets an aligned block at its corner.
+            let level = levels[iy * n + ix];
+            let size = 1usize << level;
+            let (x0, y0) = (ix & !(size - 1), iy & !(size - 1));
+            let id = blocks.len() as u32;
+            for y in y0..y0 + size {
+                block_of[y * n + x0..y * n + x0 + size].fill(id);
+            }
+            let (last_x, last_y) = (x0 + size - 1, y0 + size - 1);
+            blocks.push(Block {
+                lo: [x0 as f64 * h, y0 as f64 * h],
+                hi: if level == whole {
+                    [geometry.size_mm; 2]
+                } else {
+                    [(last_x + 1) as f64 * h, (last_y + 1) as f64 * h]
+                },
+                first: [x0 as i64, y0 as i64],
+                last: [last_x as i64, last_y as i64],
+                whole: level == whole,
+            });
         }
     }
     (block_of, blocks)
@@ -240,41 +214,13 @@ fn corner_arc_length(right: bool, up: bool, w: f64) -> f64 {
     }
 }
 
-/// The index of the pixel a ray starting at coordinate `x` (along one axis) runs in, given its
-/// direction component `dx` along that axis and `left` — the sign of the ray's left normal along
-/// that axis, used when the ray runs exactly along a grid line (`model.md`: it is inside the
-/// pixel on its left).
-fn start_index(x: f64, dx: f64, left: f64, h: f64, n: i64) -> i64 {
-    let u = x / h;
-    // ⌊u⌋ and the nearest line without the `floor`/`round` library calls (u ≥ 0 on the square).
-    let (below, line) = if u >= 0.0 {
-        let f = u as i64;
-        (f, if u - f as f64 >= 0.5 { f + 1 } else { f })
-    } else {
-        (u.floor() as i64, u.round() as i64)
-    };
-    let i = if (u - line as f64).abs() <= GRID_LINE_TOLERANCE {
-        let side = if dx != 0.0 { dx } else { left };
-        if side > 0.0 {
-            line
-        } else {
-            line - 1
-        }
-    } else {
-        below
-    };
-    i.clamp(0, n - 1)
-}
-
 /// Follows one photon of source `ray` (source index `source`) with stream `rng` to its fate.
 pub fn trace_photon(medium: &Medium, ray: &Ray, rng: &mut PhotonStream) -> Trace {
     let geo = &medium.geometry;
     let n = geo.grid as i64;
-    let h = medium.h;
     let mut pos = ray.origin;
     let mut dir = ray.direction;
-    let mut ix = start_index(pos[0], dir[0], -dir[1], h, n);
-    let mut iy = start_index(pos[1], dir[1], dir[0], h, n);
+    let (mut ix, mut iy) = start_pixel(geo, pos, dir);
     let mut scatters = 0u32;
 
     if medium.cell(ix, iy).opaque {

@@ -1,11 +1,18 @@
 //! The wgpu engine: photon transport as a WGSL compute shader (`shaders/*.wgsl`).
 //!
-//! This module owns everything GPU-side: finding and choosing adapters ([`adapters`]), the
-//! device, pipeline and the way a render batch is cut into submissions and dispatches
-//! ([`engine`], `plan`), and the shader source itself, concatenated here from the files in
-//! `shaders/` (random numbers, tallies, transport). The shader implements `model.md` exactly,
-//! with the same Philox stream layout as [`crate::rng`]; floats are f32, so this engine agrees
-//! with the CPU engine statistically, and with itself bit for bit on one device and driver.
+//! This module owns everything GPU-side:
+//! - [`adapters`]: finding and choosing adapters;
+//! - `device`: the device, its error handler and the transport pipeline, set up once;
+//! - [`engine`]: [`GpuEngine`], which lays a batch out and renders it chunk by chunk;
+//! - `dispatch_plan`: how a render batch is cut into submissions and dispatches (arithmetic);
+//! - `submission`: one chunk through the device — buffers, bind group, dispatches, readback;
+//! - `records`: the records the shader reads, `Pod` structs the WGSL structs mirror;
+//! - the shader source itself, concatenated here from the files in `shaders/` (random numbers,
+//!   tallies, transport).
+//!
+//! The shader implements `model.md` exactly, with the same Philox stream layout as
+//! [`crate::rng`]; floats are f32, so this engine agrees with the CPU engine statistically, and
+//! with itself bit for bit on one device and driver.
 //!
 //! On machines without a GPU, Mesa's lavapipe (a Vulkan CPU device) runs the same shader. Its
 //! cost model shaped the shader (see the header of `shaders/transport.wgsl`): it runs 8
@@ -16,8 +23,11 @@
 //! per round of flights.
 
 pub mod adapters;
+mod device;
+mod dispatch_plan;
 pub mod engine;
-mod plan;
+mod records;
+mod submission;
 
 #[cfg(test)]
 mod tests;

@@ -42,7 +42,7 @@ pub struct Shape {
 }
 
 /// Bytes per pixel of the medium buffer (σt, block level, σa/σt, HG c as f32).
-pub const PIXEL_BYTES: u64 = 16;
+pub const PIXEL_BYTES: u64 = std::mem::size_of::<super::records::Pixel>() as u64;
 
 /// Cuts the batch into chunks whose every buffer fits in `limit` bytes, or says why it cannot.
 pub fn chunks(shape: Shape, limit: u64) -> Result<Vec<Chunk>, String> {
