@@ -7,7 +7,7 @@
 //! loudly that it skipped, except with `CI=true`, where it fails.
 
 use crate::harness::gating::{effective_uid, has_ip, skip_or_fail};
-use std::path::Path;
+use crate::harness::process::repo_root;
 use std::process::{Command, Stdio};
 
 /// The script's exit status for "this machine cannot run it".
@@ -24,7 +24,7 @@ fn skip(why: &str) {
 
 #[test]
 fn local_cluster() {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/local-cluster.sh");
+    let script = repo_root().join("deploy/local-cluster.sh");
     assert!(script.is_file(), "{} is missing", script.display());
     match effective_uid() {
         Some(0) => {}

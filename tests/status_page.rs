@@ -7,7 +7,7 @@
 
 use crate::harness::gating::{chromium, skip_or_fail};
 use crate::harness::net::{free_port, wait_for_file};
-use crate::harness::process::{output, scatterfarm, Proc};
+use crate::harness::process::{output, repo_root, scatterfarm, Proc};
 use crate::harness::scenes::LONG_DEMO_JOB;
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -107,7 +107,7 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         "the map image did not load: {img}"
     );
 
-    let artifacts = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/test-artifacts");
+    let artifacts = repo_root().join("target/test-artifacts");
     std::fs::create_dir_all(&artifacts).unwrap();
     let shot = artifacts.join("status-page.png");
     let _ = std::fs::remove_file(&shot);

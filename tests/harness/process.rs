@@ -180,3 +180,8 @@ pub fn run(mut cmd: Command, scratch: &Path, limit: Duration) -> Ran {
         stderr: std::fs::read_to_string(&err).unwrap(),
     }
 }
+
+/// The repository's root (the binary's package is `coordinator/cli`).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
