@@ -1,61 +1,13 @@
 //! The `scatterfarm` binary as a user runs it: real processes, real files.
 
-use std::path::Path;
-use std::process::{Command, Output};
-
-fn scatterfarm(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
-        .args(args)
-        .current_dir(dir)
-        .env("RUST_LOG", "warn")
-        .output()
-        .expect("the scatterfarm binary runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "failed: {}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn fails(out: &Output) -> String {
-    assert!(
-        !out.status.success(),
-        "succeeded where it should fail: {}",
-        String::from_utf8_lossy(&out.stdout)
-    );
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-const SMALL: &str = r##"
-[geometry]
-size_mm = 16.0
-grid = 4
-positions = 16
-directions = 3
-
-[materials]
-fog = { sigma_s = 0.3, sigma_a = 0.02, g = 0.1 }
-
-[map]
-legend = { "." = "moderate", "#" = "opaque", "f" = "fog" }
-rows = [
-  "....",
-  ".#f.",
-  ".ff.",
-  "....",
-]
-"##;
+use crate::harness::process::{scatterfarm, scatterfarm_in, Proc};
+use crate::harness::scenes::SMALL;
 
 #[test]
 fn render_writes_the_observation_and_its_sidecar() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("small.toml"), SMALL).unwrap();
-    ok(&scatterfarm(
+    scatterfarm_in(
         &[
             "render",
             "small.toml",
@@ -69,7 +21,8 @@ fn render_writes_the_observation_and_its_sidecar() {
             "cpu",
         ],
         dir.path(),
-    ));
+    )
+    .ok();
     let npy = std::fs::read(dir.path().join("out/obs.npy")).unwrap();
     // NPY magic, float32 little-endian, shape [48, 48].
     assert_eq!(&npy[..6], b"\x93NUMPY");
@@ -101,7 +54,7 @@ fn render_writes_the_observation_and_its_sidecar() {
     assert!((sum * 2000.0 - exited as f64).abs() < 0.5, "{sum}");
 
     // The same seed renders the same file; drawing it gives a PNG.
-    ok(&scatterfarm(
+    scatterfarm_in(
         &[
             "render",
             "small.toml",
@@ -115,12 +68,10 @@ fn render_writes_the_observation_and_its_sidecar() {
             "cpu",
         ],
         dir.path(),
-    ));
+    )
+    .ok();
     assert_eq!(std::fs::read(dir.path().join("again.npy")).unwrap(), npy);
-    ok(&scatterfarm(
-        &["show", "out/obs.npy", "--out", "obs.png"],
-        dir.path(),
-    ));
+    scatterfarm_in(&["show", "out/obs.npy", "--out", "obs.png"], dir.path()).ok();
     let png = image::open(dir.path().join("obs.png")).unwrap();
     assert!(png.width() >= 48 && png.height() >= 48);
 }
@@ -129,10 +80,11 @@ fn render_writes_the_observation_and_its_sidecar() {
 fn a_bad_scene_names_the_file_and_place_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("bad.toml"), SMALL.replace(".ff.", ".fx.")).unwrap();
-    let err = fails(&scatterfarm(
+    let err = scatterfarm_in(
         &["render", "bad.toml", "--out", "obs.npy", "--photons", "10"],
         dir.path(),
-    ));
+    )
+    .fails();
     assert!(
         err.contains("bad.toml")
             && err.contains("row 3, column 3")
@@ -140,10 +92,7 @@ fn a_bad_scene_names_the_file_and_place_and_writes_nothing() {
         "{err}"
     );
     assert!(!dir.path().join("obs.npy").exists() && !dir.path().join("obs.json").exists());
-    let err = fails(&scatterfarm(
-        &["render", "no-such-scene", "--out", "obs.npy"],
-        dir.path(),
-    ));
+    let err = scatterfarm_in(&["render", "no-such-scene", "--out", "obs.npy"], dir.path()).fails();
     assert!(
         err.contains("no-such-scene") && err.contains("fig7a") && err.contains("phantom128"),
         "{err}"
@@ -158,61 +107,55 @@ fn a_bad_scene_names_the_file_and_place_and_writes_nothing() {
 #[test]
 fn scenes_are_listed_shown_and_drawn() {
     let dir = tempfile::tempdir().unwrap();
-    let list = ok(&scatterfarm(&["scenes"], dir.path()));
+    let list = scatterfarm_in(&["scenes"], dir.path()).ok();
     for name in ["fig7a", "fig7f", "fig7l", "phantom16", "phantom128"] {
         assert!(list.contains(name), "{list}");
     }
     assert_eq!(list.lines().count(), 15);
-    let text = ok(&scatterfarm(&["scenes", "show", "fig7k"], dir.path()));
+    let text = scatterfarm_in(&["scenes", "show", "fig7k"], dir.path()).ok();
     std::fs::write(dir.path().join("k.toml"), &text).unwrap();
     assert!(text.contains("[map]") && text.contains("opaque"));
-    ok(&scatterfarm(
-        &["show", "k.toml", "--out", "k.png"],
-        dir.path(),
-    ));
+    scatterfarm_in(&["show", "k.toml", "--out", "k.png"], dir.path()).ok();
     let png = image::open(dir.path().join("k.png")).unwrap().to_rgb8();
     assert!(png.width() > 512);
-    let err = fails(&scatterfarm(&["scenes", "show", "fig7z"], dir.path()));
+    let err = scatterfarm_in(&["scenes", "show", "fig7z"], dir.path()).fails();
     assert!(err.contains("fig7z") && err.contains("fig7a"), "{err}");
 }
 
 #[test]
 fn help_answers() {
     let dir = tempfile::tempdir().unwrap();
-    let help = ok(&scatterfarm(&["--help"], dir.path()));
+    let help = scatterfarm_in(&["--help"], dir.path()).ok();
     for cmd in ["render", "show", "scenes", "bench"] {
         assert!(help.contains(cmd), "{help}");
     }
-    let help = ok(&scatterfarm(&["render", "--help"], dir.path()));
+    let help = scatterfarm_in(&["render", "--help"], dir.path()).ok();
     assert!(help.contains("--photons") && help.contains("--seed") && help.contains("--engine"));
 }
 
 #[test]
 fn an_interrupted_render_leaves_no_file_behind() {
     let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
-        .args([
-            "render",
-            "phantom128",
-            "--out",
-            "obs.npy",
-            "--photons",
-            "1000000",
-            "--engine",
-            "cpu",
-        ])
-        .current_dir(dir.path())
-        .env("RUST_LOG", "warn")
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut cmd = scatterfarm();
+    cmd.args([
+        "render",
+        "phantom128",
+        "--out",
+        "obs.npy",
+        "--photons",
+        "1000000",
+        "--engine",
+        "cpu",
+    ])
+    .current_dir(dir.path())
+    .stderr(std::process::Stdio::null());
+    let mut render = Proc::spawn(cmd);
     std::thread::sleep(std::time::Duration::from_millis(1500));
     assert!(
-        child.try_wait().unwrap().is_none(),
+        render.running(),
         "the render finished too soon to interrupt"
     );
-    child.kill().unwrap();
-    child.wait().unwrap();
+    render.kill();
     let left: Vec<_> = std::fs::read_dir(dir.path())
         .unwrap()
         .map(|e| e.unwrap().file_name())
@@ -225,7 +168,7 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
     // The adapter does not exist: an engine opened before the options were checked would
     // report the adapter instead of the option.
     let dir = tempfile::tempdir().unwrap();
-    let err = fails(&scatterfarm(
+    let err = scatterfarm_in(
         &[
             "reconstruct",
             "--scene",
@@ -239,13 +182,14 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
             "out",
         ],
         dir.path(),
-    ));
+    )
+    .fails();
     assert!(
         err.contains("--tie-z") && !err.contains("no-such-adapter"),
         "{err}"
     );
     assert!(!dir.path().join("out").exists(), "something was written");
-    let err = fails(&scatterfarm(
+    let err = scatterfarm_in(
         &[
             "bench",
             "reconstruct",
@@ -261,7 +205,8 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
             "bench.json",
         ],
         dir.path(),
-    ));
+    )
+    .fails();
     assert!(
         err.contains("--race-share") && err.contains("demo8") && !err.contains("no-such-adapter"),
         "{err}"
@@ -272,7 +217,7 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
 #[test]
 fn the_quality_bench_reports_each_run_and_its_level_zero_map() {
     let dir = tempfile::tempdir().unwrap();
-    ok(&scatterfarm(
+    scatterfarm_in(
         &[
             "bench",
             "reconstruct",
@@ -304,7 +249,8 @@ fn the_quality_bench_reports_each_run_and_its_level_zero_map() {
             "bench.json",
         ],
         dir.path(),
-    ));
+    )
+    .ok();
     let bench: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
     let runs = bench["runs"].as_array().unwrap();

@@ -2,42 +2,20 @@
 //! 16 positions, 3 directions): real searches that must find the truth, determinism by seed,
 //! and unknown-materials mode.
 
+use crate::harness::process::{output, scatterfarm, scatterfarm_in};
+use crate::harness::scenes::{THREE, TWO};
 use std::path::Path;
-use std::process::Command;
-
-const TWO: &str = r##"
-[geometry]
-grid = 4
-positions = 16
-directions = 3
-[map]
-legend = { "." = "moderate", "#" = "opaque" }
-rows = ["....", ".##.", ".##.", "...."]
-"##;
-
-const THREE: &str = r##"
-[geometry]
-grid = 4
-positions = 16
-directions = 3
-[map]
-legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
-rows = ["oo..", "oo..", "...b", "..bb"]
-"##;
 
 fn reconstruct(dir: &Path, scene: &str, out: &str, extra: &[&str]) -> serde_json::Value {
     let scene_path = dir.join(format!("{out}.toml"));
     std::fs::write(&scene_path, scene).unwrap();
-    let status = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
-        .args(["reconstruct", "--scene"])
+    let mut cmd = scatterfarm();
+    cmd.args(["reconstruct", "--scene"])
         .arg(&scene_path)
         .args(["--engine", "cpu", "--quiet", "--out"])
         .arg(dir.join(out))
-        .args(extra)
-        .env("RUST_LOG", "warn")
-        .status()
-        .unwrap();
-    assert!(status.success());
+        .args(extra);
+    output(cmd).ok();
     serde_json::from_slice(&std::fs::read(dir.join(out).join("report.json")).unwrap()).unwrap()
 }
 
@@ -122,19 +100,16 @@ fn the_fast_search_finds_them_with_a_fraction_of_the_photons() {
 fn the_tiebreak_lets_the_fast_search_leave_a_saturated_one_material_map() {
     let dir = tempfile::tempdir().unwrap();
     let run = |out: &str, extra: &[&str]| {
-        let status = Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
-            .args(["reconstruct", "--scene", "phantom16", "--engine", "cpu"])
+        let mut cmd = scatterfarm();
+        cmd.args(["reconstruct", "--scene", "phantom16", "--engine", "cpu"])
             .args(["--grid", "8", "--positions", "16", "--directions", "3"])
             .args(["--permutations", "1", "--iterations", "8"])
             .args(["--target-photons", "4096", "--search", "fast", "--quiet"])
             .args(["--seed", "3"])
             .arg("--out")
             .arg(dir.path().join(out))
-            .args(extra)
-            .env("RUST_LOG", "warn")
-            .status()
-            .unwrap();
-        assert!(status.success());
+            .args(extra);
+        output(cmd).ok();
         let report: serde_json::Value = serde_json::from_slice(
             &std::fs::read(dir.path().join(out).join("report.json")).unwrap(),
         )
@@ -239,15 +214,6 @@ fn unknown_materials_improve_on_their_level_zero_answer() {
     assert_eq!(table["materials"].as_array().unwrap().len(), 4 * 3);
 }
 
-fn run(dir: &Path, args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_scatterfarm"))
-        .args(args)
-        .current_dir(dir)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap()
-}
-
 #[test]
 fn a_captured_target_is_reconstructed_from_its_files() {
     let dir = tempfile::tempdir().unwrap();
@@ -255,8 +221,7 @@ fn a_captured_target_is_reconstructed_from_its_files() {
     std::fs::write(d.join("two.toml"), TWO).unwrap();
     std::fs::write(d.join("flat.toml"), TWO.replace(".##.", "....")).unwrap();
     // "Captures": a render of the unknown medium and one of a known homogeneous material.
-    assert!(run(
-        d,
+    assert!(scatterfarm_in(
         &[
             "render",
             "two.toml",
@@ -268,12 +233,12 @@ fn a_captured_target_is_reconstructed_from_its_files() {
             "9",
             "--engine",
             "cpu"
-        ]
+        ],
+        d
     )
     .status
     .success());
-    assert!(run(
-        d,
+    assert!(scatterfarm_in(
         &[
             "render",
             "flat.toml",
@@ -285,15 +250,15 @@ fn a_captured_target_is_reconstructed_from_its_files() {
             "10",
             "--engine",
             "cpu"
-        ]
+        ],
+        d
     )
     .status
     .success());
 
     // A capture without a sidecar gets one from `describe`, checked against the matrix shape.
     std::fs::copy(d.join("capture.npy"), d.join("bare.npy")).unwrap();
-    let wrong = run(
-        d,
+    let wrong = scatterfarm_in(
         &[
             "describe",
             "bare.npy",
@@ -306,12 +271,12 @@ fn a_captured_target_is_reconstructed_from_its_files() {
             "--photons",
             "16384",
         ],
+        d,
     );
     assert!(!wrong.status.success());
-    assert!(String::from_utf8_lossy(&wrong.stderr).contains("needs [36, 36]"));
+    assert!(wrong.stderr.contains("needs [36, 36]"));
     assert!(!d.join("bare.json").exists());
-    let ok = run(
-        d,
+    let ok = scatterfarm_in(
         &[
             "describe",
             "bare.npy",
@@ -324,19 +289,15 @@ fn a_captured_target_is_reconstructed_from_its_files() {
             "--photons",
             "16384",
         ],
+        d,
     );
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    assert!(ok.status.success(), "{}", ok.stderr);
     let side: serde_json::Value =
         serde_json::from_slice(&std::fs::read(d.join("bare.json")).unwrap()).unwrap();
     assert_eq!(side["format"], "scatterfarm-observation/1");
     assert_eq!(side["photons_per_source"], 16384);
 
-    let out = run(
-        d,
+    let out = scatterfarm_in(
         &[
             "reconstruct",
             "--target",
@@ -359,12 +320,9 @@ fn a_captured_target_is_reconstructed_from_its_files() {
             "--out",
             "captured",
         ],
+        d,
     );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", out.stderr);
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(d.join("captured/report.json")).unwrap()).unwrap();
     // No truth is known: no accuracy, but the map is the scene's.

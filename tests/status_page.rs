@@ -5,55 +5,13 @@
 //! Needs Debian's `chromium`. Without it the test says loudly that it skipped, except under
 //! `CI=true`, where it fails.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use crate::harness::gating::{chromium, skip_or_fail};
+use crate::harness::net::{free_port, wait_for_file};
+use crate::harness::process::{output, repo_root, scatterfarm, Proc};
+use crate::harness::scenes::LONG_DEMO_JOB;
+use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// Kills a child process when dropped, so a failing test leaves nothing running.
-struct Guard(Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_scatterfarm"));
-    c.env("RUST_LOG", "warn")
-        .env_remove("SCATTERFARM_TOKEN")
-        .env_remove("SCATTERFARM_TOKEN_FILE")
-        .env_remove("SCATTERFARM_COORDINATOR");
-    c
-}
-
-fn chromium() -> Option<PathBuf> {
-    ["/usr/bin/chromium", "/usr/bin/chromium-browser"]
-        .iter()
-        .map(PathBuf::from)
-        .find(|p| p.exists())
-}
-
-fn wait_for_file(path: &Path) -> String {
-    let until = Instant::now() + Duration::from_secs(60);
-    loop {
-        if let Ok(text) = std::fs::read_to_string(path) {
-            if text.ends_with('\n') {
-                return text.trim().to_string();
-            }
-        }
-        assert!(Instant::now() < until, "{} never appeared", path.display());
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free local port")
-}
 
 /// Runs headless Chromium with `args` against `url`, returns stdout.
 fn browse(browser: &Path, profile: &Path, args: &[&str], url: &str) -> String {
@@ -83,61 +41,41 @@ fn browse(browser: &Path, profile: &Path, args: &[&str], url: &str) -> String {
 #[test]
 fn the_status_page_shows_jobs_workers_and_the_current_map() {
     let Some(browser) = chromium() else {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "CI=true but Chromium is not installed (apt-get install chromium)"
+        return skip_or_fail(
+            "status_page::the_status_page_shows_jobs_workers_and_the_current_map",
+            "Chromium is not installed; the status page was not tested",
+            "apt-get install chromium",
         );
-        eprintln!("SKIPPED: Chromium is not installed; the status page was not tested");
-        return;
     };
     let dir = tempfile::tempdir().unwrap();
     let http = free_port();
     let addr_file = dir.path().join("address");
-    let _coordinator = Guard(
-        bin()
-            .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-            .arg(dir.path().join("data"))
-            .arg("--address-file")
-            .arg(&addr_file)
-            .args(["--http", &format!("127.0.0.1:{http}")])
-            .spawn()
-            .unwrap(),
-    );
+    let mut coordinator = scatterfarm();
+    coordinator
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+        .arg(dir.path().join("data"))
+        .arg("--address-file")
+        .arg(&addr_file)
+        .args(["--http", &format!("127.0.0.1:{http}")]);
+    let _coordinator = Proc::spawn(coordinator);
     let url = wait_for_file(&addr_file);
-    let _worker = Guard(
-        bin()
-            .args(["worker", "--engine", "cpu", "--name", "page-test-worker"])
-            .args(["--coordinator", &url])
-            .spawn()
-            .unwrap(),
-    );
-    // A job long enough to still run while the page is loaded.
+    let mut worker = scatterfarm();
+    worker
+        .args(["worker", "--engine", "cpu", "--name", "page-test-worker"])
+        .args(["--coordinator", &url]);
+    let _worker = Proc::spawn(worker);
     let job = dir.path().join("job.toml");
-    std::fs::write(
-        &job,
-        "scene = \"demo8\"\npermutations = 4\niterations = 8\nphotons_per_iteration = 512\nname = \"page-test-job\"\n",
-    )
-    .unwrap();
-    let out = bin()
-        .args(["submit", "--coordinator", &url])
-        .arg(&job)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    std::fs::write(&job, LONG_DEMO_JOB).unwrap();
+    let mut submit = scatterfarm();
+    submit.args(["submit", "--coordinator", &url]).arg(&job);
+    let id = output(submit).ok().trim().to_string();
 
     // Wait until something has been scored, so there is a map to show.
     let until = Instant::now() + Duration::from_secs(120);
     loop {
-        let out = bin()
-            .args(["status", "--json", "--coordinator", &url, &id])
-            .output()
-            .unwrap();
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_default();
+        let mut status = scatterfarm();
+        status.args(["status", "--json", "--coordinator", &url, &id]);
+        let v: serde_json::Value = serde_json::from_str(&output(status).stdout).unwrap_or_default();
         if v["best_similarity"].is_number() {
             break;
         }
@@ -169,7 +107,7 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         "the map image did not load: {img}"
     );
 
-    let artifacts = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/test-artifacts");
+    let artifacts = repo_root().join("target/test-artifacts");
     std::fs::create_dir_all(&artifacts).unwrap();
     let shot = artifacts.join("status-page.png");
     let _ = std::fs::remove_file(&shot);

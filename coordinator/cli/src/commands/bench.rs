@@ -13,7 +13,7 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
 
-#[path = "bench_farm.rs"]
+#[path = "bench_farm/mod.rs"]
 mod farm;
 
 #[derive(Debug, Args)]
