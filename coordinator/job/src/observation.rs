@@ -1,4 +1,4 @@
-//! Observation files (`model.md`, "Observation files"): an `[P·K, P·K]` float32 NPY of
+//! Observation files (`docs/model.md`, "Observation files"): an `[P·K, P·K]` float32 NPY of
 //! fractions `O[i][j]` and a JSON sidecar of the same name with a `.json` extension.
 //!
 //! Writes go to temporary files in the target directory and are renamed into place, so an

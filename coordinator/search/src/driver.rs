@@ -16,7 +16,7 @@ use scatterfarm_model::{CountMatrix, Engine, Geometry, Material, RenderItem};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-/// The photon budget of a search (`model.md`, "Budget").
+/// The photon budget of a search (`docs/model.md`, "Budget").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Budget {
     pub iterations: u32,

@@ -1,4 +1,4 @@
-//! The paper's hierarchical quad-tree permutation search (`model.md`, "Search") as a pure state
+//! The paper's hierarchical quad-tree permutation search (`docs/model.md`, "Search") as a pure state
 //! machine: it emits the render requests it needs next and consumes their scores. It does no
 //! I/O and calls no engine; its whole state, the random generator's included, serializes, so a
 //! search restored from any step boundary ends exactly as one left alone.

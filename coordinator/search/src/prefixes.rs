@@ -1,6 +1,6 @@
 //! Counts of racing's first-stage renders, kept so that a contender's full render only renders
 //! the photons it lacks: photons `[0, a)` and `[a, n)` of one seed add up to exactly the render
-//! of `[0, n)` (`model.md`, "Randomness").
+//! of `[0, n)` (`docs/model.md`, "Randomness").
 //!
 //! The store is bounded in bytes and forgets its oldest entries first; a forgotten prefix only
 //! costs its photons again, never a different result.

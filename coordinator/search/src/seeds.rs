@@ -1,4 +1,4 @@
-//! Seed streams (`model.md`, "Seed streams"): every random stream of a job is derived from the
+//! Seed streams (`docs/model.md`, "Seed streams"): every random stream of a job is derived from the
 //! job's one seed by hashing it with a domain tag, so no two uses ever share a stream.
 //!
 //! The derivation is SHA-256 over a fixed prefix, the seed, the tag and an index, truncated to

@@ -1,4 +1,4 @@
-//! Similarity between a target observation set and a render (`model.md`, "Similarity"), and the
+//! Similarity between a target observation set and a render (`docs/model.md`, "Similarity"), and the
 //! calibration of the threshold ε.
 //!
 //! Scores are computed from summed integer counts, so a render may arrive in pieces. Every

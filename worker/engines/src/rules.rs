@@ -26,7 +26,7 @@ pub const GRID_LINE_TOLERANCE: f64 = 1e-9;
 
 /// The index of the pixel a ray starting at coordinate `x` (along one axis) runs in, given its
 /// direction component `dx` along that axis and `left` — the sign of the ray's left normal along
-/// that axis, used when the ray runs exactly along a grid line (`model.md`: it is inside the
+/// that axis, used when the ray runs exactly along a grid line (`docs/model.md`: it is inside the
 /// pixel on its left). `h` is the pixel side, `n` the pixels per side; the index is clamped into
 /// the grid.
 #[inline]

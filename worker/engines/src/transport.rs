@@ -1,4 +1,4 @@
-//! Flatland photon transport through a pixel grid, exactly as `model.md` ("Transport") says:
+//! Flatland photon transport through a pixel grid, exactly as `docs/model.md` ("Transport") says:
 //! exact grid traversal, opaque pixels absorb on entry, analog absorption, flatland HG.
 //!
 //! [`Medium`] is a material assignment laid out for the tracer; [`trace_photon`] follows one

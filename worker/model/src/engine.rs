@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use thiserror::Error;
 
-/// What makes counts bit-exact: engine kind, adapter, driver and engine version (`model.md`).
+/// What makes counts bit-exact: engine kind, adapter, driver and engine version (`docs/model.md`).
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct EngineFingerprint {
     /// `cpu` or `gpu`.
@@ -174,7 +174,7 @@ pub enum EngineError {
 
 /// A renderer of binned lightfields.
 pub trait Engine: Send + Sync {
-    /// Identifies the counts this engine produces (`model.md`, "Engine fingerprint").
+    /// Identifies the counts this engine produces (`docs/model.md`, "Engine fingerprint").
     fn fingerprint(&self) -> EngineFingerprint;
 
     /// Renders every item of the batch; outputs are in item order.

@@ -1,4 +1,4 @@
-//! The boundary geometry of `model.md`: the square medium, its pixel grid, arc length around the
+//! The boundary geometry of `docs/model.md`: the square medium, its pixel grid, arc length around the
 //! boundary, the ideal-ray sources and the (position, direction) bins photons land in.
 //!
 //! Everything here is pure arithmetic on `f64`; the edge-case rules (bin-edge snapping, corner
@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 use thiserror::Error;
 
-/// Within this distance of a whole number, a bin coordinate snaps to it (`model.md`, "Bin edges").
+/// Within this distance of a whole number, a bin coordinate snaps to it (`docs/model.md`, "Bin edges").
 pub const BIN_SNAP: f64 = 1e-4;
 
 /// Size, grid and boundary sampling of a medium.
@@ -202,7 +202,7 @@ impl Geometry {
 
     /// The bin `j = p'·K + k'` of a photon leaving at arc length `s` with unit direction `d`.
     ///
-    /// Applies `model.md`'s rules: `u = s/e` and `u = (β+π/2)·K/π` snap to a whole number within
+    /// Applies `docs/model.md`'s rules: `u = s/e` and `u = (β+π/2)·K/π` snap to a whole number within
     /// [`BIN_SNAP`] (an edge belongs to the upper bin); `s = 4W` wraps to 0; a corner belongs to
     /// the edge whose arc-length interval starts there, and `β` is measured from that edge's
     /// outward normal. Both indices are clamped into range.

@@ -52,7 +52,7 @@ impl Material {
         Ok(m)
     }
 
-    /// Checks the ranges of `model.md`: σs finite ≥ 0, σa ≥ 0 or +∞, |g| ≤ 1.
+    /// Checks the ranges of `docs/model.md`: σs finite ≥ 0, σa ≥ 0 or +∞, |g| ≤ 1.
     pub fn validate(&self) -> Result<(), MaterialError> {
         if !(self.sigma_s.is_finite() && self.sigma_s >= 0.0) {
             return Err(MaterialError::SigmaS(self.sigma_s));
@@ -76,7 +76,7 @@ impl Material {
         self.sigma_s + self.sigma_a
     }
 
-    /// σa as used by the paper's error measure: opaque counts as 1 mm⁻¹ (`model.md`, "Reporting").
+    /// σa as used by the paper's error measure: opaque counts as 1 mm⁻¹ (`docs/model.md`, "Reporting").
     pub fn sigma_a_for_error(&self) -> f64 {
         if self.is_opaque() {
             1.0

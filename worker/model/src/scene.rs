@@ -1,4 +1,4 @@
-//! Scene files (`model.md`, "Scene files"): TOML in, a validated [`Scene`] out, and back to TOML.
+//! Scene files (`docs/model.md`, "Scene files"): TOML in, a validated [`Scene`] out, and back to TOML.
 //!
 //! Every error names the key, or the row and column, at fault. The material table of a scene
 //! lists the materials its legend uses, in legend order: that order is the default dictionary's.

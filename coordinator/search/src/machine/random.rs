@@ -31,7 +31,7 @@ pub fn shuffle(rng: &mut ChaCha8Rng, items: &mut [u32]) {
     }
 }
 
-/// Bounds of random materials (`model.md`: default σs ∈ [0, 1], σa ∈ [0, 0.03], g ∈ [0, 1]).
+/// Bounds of random materials (`docs/model.md`: default σs ∈ [0, 1], σa ∈ [0, 0.03], g ∈ [0, 1]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Bounds {
     pub sigma_s: (f64, f64),

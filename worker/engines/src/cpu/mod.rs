@@ -1,4 +1,4 @@
-//! The CPU engine: the reference implementation of `model.md`, parallel over sources with rayon.
+//! The CPU engine: the reference implementation of `docs/model.md`, parallel over sources with rayon.
 //!
 //! Each (assignment, source) pair is traced independently into its own row, so the counts do not
 //! depend on the number of threads or on how the photon range is split.

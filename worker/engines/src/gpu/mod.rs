@@ -10,7 +10,7 @@
 //! - the shader source itself, concatenated here from the files in `shaders/` (random numbers,
 //!   tallies, transport).
 //!
-//! The shader implements `model.md` exactly, with the same Philox stream layout as
+//! The shader implements `docs/model.md` exactly, with the same Philox stream layout as
 //! [`crate::rng`]; floats are f32, so this engine agrees with the CPU engine statistically, and
 //! with itself bit for bit on one device and driver.
 //!
