@@ -4,7 +4,8 @@
 //!
 //! - [`store`]: the durable state behind a small trait (sled, with a schema version).
 //! - [`work`]: render groups cut into photon-range pieces, with partial counts summed.
-//! - [`job`]: one job: record, durable progress, its search steps as render groups.
+//! - [`job`]: one job, one file per concern: record, durable progress, pinning, planning
+//!   through the search's step driver, setup completion, outputs, pace.
 //! - [`scheduler`]: the [`scheduler::Scheduler`]: jobs, the worker registry and leases, one file
 //!   per concern (client requests, registry, leasing, lease sizing, result checks, expiry).
 //! - [`service`]: the [`service::Farm`] both services share, and the `WorkerService` and

@@ -1,0 +1,130 @@
+//! Cutting a job's work into render groups, through the search's step driver
+//! ([`scatterfarm_search::steps::Steps`]), and taking the groups back as they complete.
+
+use super::{Job, Phase};
+use crate::store::Store;
+use crate::work::{Purpose, RenderGroup};
+use anyhow::{Context, Result};
+use scatterfarm_search::identity::identity;
+use scatterfarm_search::steps::{GroupItem, Next};
+
+impl Job {
+    /// Makes sure the job has groups to render if it needs any: the missing setup renders, or
+    /// the current step's unscored renders. Steps whose renders are all scored are submitted
+    /// on the way. Needs the job pinned.
+    pub fn plan_work(
+        &mut self,
+        new_group_id: &mut dyn FnMut() -> u64,
+        store: &dyn Store,
+    ) -> Result<()> {
+        if !self.groups.is_empty() || !self.is_active() {
+            return Ok(());
+        }
+        let fingerprint = self
+            .progress
+            .pinned
+            .clone()
+            .context("a job is planned before it is pinned")?;
+        if self.progress.phase == Phase::Preparing {
+            for r in self.plan.setup_renders()? {
+                if self.setup.has(r.kind) {
+                    continue;
+                }
+                let id = identity(
+                    &r.item.assignment,
+                    &r.table,
+                    r.geometry,
+                    r.item.seed,
+                    r.photons,
+                    &fingerprint,
+                );
+                self.groups.push(RenderGroup::new(
+                    new_group_id(),
+                    Purpose::Setup(r.kind),
+                    r.geometry,
+                    r.table,
+                    vec![GroupItem {
+                        identity: id,
+                        item: r.item,
+                    }],
+                    r.photons,
+                ));
+            }
+            if self.groups.is_empty() {
+                self.finish_setup(store)?;
+            } else {
+                return Ok(());
+            }
+        }
+        let geometry = self.plan.search_geometry;
+        loop {
+            let steps = self
+                .steps
+                .as_mut()
+                .context("a job is planned before it is pinned")?;
+            match steps.next(&mut self.progress.search, &mut self.progress.used)? {
+                Next::Finished => return self.finish(store),
+                Next::Submitted => self.persist(store)?,
+                Next::Render(groups) => {
+                    let table = self.progress.search.materials();
+                    for g in groups {
+                        let group = RenderGroup::new(
+                            new_group_id(),
+                            Purpose::Search,
+                            geometry,
+                            table.clone(),
+                            g.items,
+                            g.photons,
+                        );
+                        self.groups.push(group.starting_from(g.start, g.prefixes));
+                    }
+                    return Ok(());
+                }
+            }
+        }
+    }
+
+    /// Takes a complete group's counts: setup counts are kept until the setup is complete;
+    /// search renders are scored and their scores stored. Then plans the next work.
+    pub fn group_complete(
+        &mut self,
+        group: RenderGroup,
+        new_group_id: &mut dyn FnMut() -> u64,
+        store: &dyn Store,
+    ) -> Result<()> {
+        let sources = group.geometry.sources() as u64;
+        self.progress.photons_simulated +=
+            sources * u64::from(group.photons - group.start) * group.items.len() as u64;
+        self.progress.used.scatter_events += group.scatter_events;
+        let purpose = group.purpose;
+        let photons = group.photons;
+        let items = group.items.clone();
+        let sums = group.into_sums();
+        match purpose {
+            Purpose::Setup(kind) => {
+                if let Some(c) = sums.into_iter().next() {
+                    self.setup.set(kind, c);
+                }
+            }
+            Purpose::Search => {
+                let scoring = self
+                    .scoring
+                    .as_ref()
+                    .context("a search render completed before ε was calibrated")?;
+                let steps = self
+                    .steps
+                    .as_mut()
+                    .context("a search render completed for a job that is not pinned")?;
+                for (id, score, step) in
+                    steps.complete(&self.progress.search, scoring, photons, &items, sums)?
+                {
+                    store.put_score(&self.id, &id, score, step)?;
+                }
+            }
+        }
+        if self.groups.is_empty() {
+            self.plan_work(new_group_id, store)?;
+        }
+        Ok(())
+    }
+}
