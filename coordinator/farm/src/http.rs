@@ -379,7 +379,7 @@ async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
         let Some(job) = scheduler.jobs.get(&id) else {
             return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
         };
-        let search = &job.progress.search;
+        let search = &job.checkpoint.search;
         let best = search
             .result()
             .map(|r| r.assignment.clone())

@@ -1,40 +1,40 @@
 //! The job-status view: a job as clients, the CLI and the status page see it (the protocol's
 //! `JobStatus`), and the one name of each job state.
 
-use crate::job::{Job, Phase};
+use crate::job::{Job, JobState};
 use crate::scheduler::Scheduler;
 use scatterfarm_proto::v1 as pb;
 
 /// The protocol's state of a job.
 fn state_of(job: &Job) -> pb::JobState {
-    match job.progress.phase {
-        Phase::Preparing => pb::JobState::Preparing,
-        Phase::Searching => pb::JobState::Searching,
-        Phase::Finished => pb::JobState::Finished,
-        Phase::Cancelled => pb::JobState::Cancelled,
-        Phase::Failed { .. } => pb::JobState::Failed,
+    match job.checkpoint.state {
+        JobState::Preparing => pb::JobState::Preparing,
+        JobState::Searching => pb::JobState::Searching,
+        JobState::Finished => pb::JobState::Finished,
+        JobState::Cancelled => pb::JobState::Cancelled,
+        JobState::Failed { .. } => pb::JobState::Failed,
     }
 }
 
 /// A job's status as clients see it.
 pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
-    let p = job.progress.search.progress();
+    let p = job.checkpoint.search.progress();
     let (rate, eta) = job.pace();
-    let message = match &job.progress.phase {
-        Phase::Failed { message } => message.clone(),
-        Phase::Preparing => scheduler
+    let message = match &job.checkpoint.state {
+        JobState::Failed { message } => message.clone(),
+        JobState::Preparing => scheduler
             .waiting_reason(job)
             .unwrap_or_else(|| "rendering the target and calibrating ε".into()),
-        Phase::Searching => scheduler.waiting_reason(job).unwrap_or_default(),
-        Phase::Finished => "finished".into(),
-        Phase::Cancelled => "cancelled".into(),
+        JobState::Searching => scheduler.waiting_reason(job).unwrap_or_default(),
+        JobState::Finished => "finished".into(),
+        JobState::Cancelled => "cancelled".into(),
     };
     pb::JobStatus {
         job_id: job.id.clone(),
         name: job.name(),
         state: state_of(job) as i32,
         message,
-        engine: job.progress.pinned.clone().unwrap_or_default(),
+        engine: job.checkpoint.pinned.clone().unwrap_or_default(),
         level: p.level,
         levels: p.levels,
         permutation: p.permutation,
@@ -44,7 +44,7 @@ pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
         renders_done: p.renders_done,
         renders_total: p.renders_total,
         best_similarity: p.best_score.unwrap_or(f64::NAN),
-        photons: job.progress.photons_simulated,
+        photons: job.checkpoint.photons_simulated,
         photons_per_second: rate,
         eta_seconds: eta.unwrap_or(-1.0),
         workers_busy: scheduler.workers_busy(&job.id),

@@ -1,7 +1,7 @@
 //! Data folders written by earlier releases (`tests/fixtures/data/`, one folder per release):
 //! this build must still open each, restore its jobs and read their results.
 
-use scatterfarm_coordinator::job::{Job, Phase};
+use scatterfarm_coordinator::job::{Job, JobState};
 use scatterfarm_coordinator::store::{SledStore, Store};
 use std::path::{Path, PathBuf};
 
@@ -46,13 +46,13 @@ fn every_release_data_folder_opens_with_its_finished_job_and_result() {
             let job = Job::restore(id.clone(), &record, &store)
                 .unwrap_or_else(|e| panic!("{} job {id}: {e:#}", dir.display()));
             assert_eq!(
-                job.progress.phase,
-                Phase::Finished,
+                job.checkpoint.state,
+                JobState::Finished,
                 "{} job {id}",
                 dir.display()
             );
             let result = job
-                .progress
+                .checkpoint
                 .search
                 .result()
                 .unwrap_or_else(|| panic!("{} job {id}: no result", dir.display()));

@@ -1,4 +1,4 @@
-//! A job's durable progress: where it stands and everything its search has consumed, written to
+//! A job's durable checkpoint: where it stands and everything its search has consumed, written to
 //! the store after every step.
 
 use super::Job;
@@ -13,7 +13,7 @@ use std::time::Instant;
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "state", rename_all = "kebab-case")]
-pub enum Phase {
+pub enum JobState {
     Preparing,
     Searching,
     Finished,
@@ -23,8 +23,9 @@ pub enum Phase {
 
 /// What is written after every step.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Progress {
-    pub phase: Phase,
+pub struct Checkpoint {
+    #[serde(rename = "phase")]
+    pub state: JobState,
     /// The engine fingerprint the job is pinned to ([`super::ANY_ENGINE`] when it opted out).
     pub pinned: Option<String>,
     /// ε of the finest level's budget (for listings; `epsilons` holds every budget's).
@@ -40,11 +41,11 @@ pub struct Progress {
     pub active_seconds: f64,
 }
 
-impl Progress {
+impl Checkpoint {
     /// A new job's: preparing, nothing consumed.
-    pub(super) fn start(pinned: Option<String>, search: Search) -> Progress {
-        Progress {
-            phase: Phase::Preparing,
+    pub(super) fn start(pinned: Option<String>, search: Search) -> Checkpoint {
+        Checkpoint {
+            state: JobState::Preparing,
             pinned,
             epsilon: None,
             epsilons: BTreeMap::new(),
@@ -62,7 +63,7 @@ impl Progress {
     }
 
     /// Reads job `id`'s back.
-    pub(super) fn load(id: &str, store: &dyn Store) -> Result<Progress> {
+    pub(super) fn load(id: &str, store: &dyn Store) -> Result<Checkpoint> {
         match store.progress(id)? {
             Some(bytes) => Ok(
                 serde_json::from_slice(&bytes).map_err(|e| StoreError::Damaged {
@@ -76,11 +77,31 @@ impl Progress {
 }
 
 impl Job {
-    /// Adds the time worked since the last write and stores the progress.
+    /// Adds the time worked since the last write and stores the checkpoint.
     pub(super) fn persist(&mut self, store: &dyn Store) -> Result<()> {
         let now = Instant::now();
-        self.progress.active_seconds += now.duration_since(self.last_active).as_secs_f64();
+        self.checkpoint.active_seconds += now.duration_since(self.last_active).as_secs_f64();
         self.last_active = now;
-        self.progress.save(&self.id, store)
+        self.checkpoint.save(&self.id, store)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_state_keeps_its_stored_names() {
+        let failed = JobState::Failed {
+            message: "m".into(),
+        };
+        assert_eq!(
+            serde_json::to_value(&failed).unwrap(),
+            serde_json::json!({"state": "failed", "message": "m"})
+        );
+        assert_eq!(
+            serde_json::to_value(JobState::Preparing).unwrap(),
+            serde_json::json!({"state": "preparing"})
+        );
     }
 }

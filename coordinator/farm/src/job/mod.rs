@@ -2,7 +2,7 @@
 //! restoring, failing, cancelling, finishing), with one file per concern:
 //!
 //! - [`record`]: the immutable [`JobRecord`].
-//! - [`checkpoint`]: the durable [`Progress`] written after every step, and the [`Phase`].
+//! - [`checkpoint`]: the durable [`Checkpoint`] written after every step, and the [`JobState`].
 //! - [`pinning`]: pinning the job to one engine fingerprint ([`ANY_ENGINE`] for none).
 //! - `planning`: its work cut into render groups through the search's step driver, and the
 //!   groups taken back as they complete.
@@ -24,7 +24,7 @@ mod planning;
 pub mod record;
 mod setup;
 
-pub use checkpoint::{Phase, Progress};
+pub use checkpoint::{Checkpoint, JobState};
 pub use pinning::ANY_ENGINE;
 pub use record::JobRecord;
 
@@ -47,7 +47,7 @@ pub struct Job {
     pub id: String,
     pub record: JobRecord,
     pub plan: Plan,
-    pub progress: Progress,
+    pub checkpoint: Checkpoint,
     scoring: Option<Scoring>,
     /// The search's step driver (score cache and racing prefixes), once the job is pinned to
     /// an engine; its scores are also in the store.
@@ -72,11 +72,12 @@ impl Job {
             params,
             submitted_unix: now_unix(),
         };
-        let progress = Progress::start(pinning::initial_pin(&record.params), plan.search.clone());
+        let checkpoint =
+            Checkpoint::start(pinning::initial_pin(&record.params), plan.search.clone());
         for (name, bytes) in &inputs.files {
             store.put_blob(&id, &input_key(name), bytes)?;
         }
-        progress.save(&id, store)?;
+        checkpoint.save(&id, store)?;
         // The record goes last: a job without one is not loaded, so a crash mid-submission
         // leaves nothing visible.
         store.put_record(&id, &serde_json::to_vec(&record)?)?;
@@ -84,7 +85,7 @@ impl Job {
             id,
             record,
             plan,
-            progress,
+            checkpoint,
             BTreeMap::new(),
             None,
         ))
@@ -106,22 +107,22 @@ impl Job {
             inputs.files.insert(name.clone(), bytes);
         }
         let plan = Plan::resolve(&record.params, &inputs).with_context(|| format!("job {id}"))?;
-        let progress = Progress::load(&id, store)?;
-        let scoring = setup::restored_scoring(&id, &plan, &progress, store)?;
+        let checkpoint = Checkpoint::load(&id, store)?;
+        let scoring = setup::restored_scoring(&id, &plan, &checkpoint, store)?;
         let scores = store.scores(&id)?;
-        Ok(Job::assemble(id, record, plan, progress, scores, scoring))
+        Ok(Job::assemble(id, record, plan, checkpoint, scores, scoring))
     }
 
     fn assemble(
         id: String,
         record: JobRecord,
         plan: Plan,
-        progress: Progress,
+        checkpoint: Checkpoint,
         scores: BTreeMap<Identity, (Score, u64)>,
         scoring: Option<Scoring>,
     ) -> Job {
-        let renders = progress.search.progress().renders_done;
-        let steps = progress
+        let renders = checkpoint.search.progress().renders_done;
+        let steps = checkpoint
             .pinned
             .as_deref()
             .map(|fingerprint| Steps::new(plan.search_geometry, fingerprint, scores));
@@ -129,7 +130,7 @@ impl Job {
             id,
             record,
             plan,
-            progress,
+            checkpoint,
             scoring,
             steps,
             setup: SetupCounts::default(),
@@ -143,7 +144,10 @@ impl Job {
 
     /// Whether the job still needs renders.
     pub fn is_active(&self) -> bool {
-        matches!(self.progress.phase, Phase::Preparing | Phase::Searching)
+        matches!(
+            self.checkpoint.state,
+            JobState::Preparing | JobState::Searching
+        )
     }
 
     /// A label for listings.
@@ -168,7 +172,7 @@ impl Job {
     pub fn fail(&mut self, message: String, store: &dyn Store) -> Result<()> {
         tracing::error!("job {} failed: {message}", self.id);
         self.groups.clear();
-        self.progress.phase = Phase::Failed { message };
+        self.checkpoint.state = JobState::Failed { message };
         self.persist(store)
     }
 
@@ -176,7 +180,7 @@ impl Job {
     pub fn cancel(&mut self, store: &dyn Store) -> Result<()> {
         if self.is_active() {
             self.groups.clear();
-            self.progress.phase = Phase::Cancelled;
+            self.checkpoint.state = JobState::Cancelled;
             self.persist(store)?;
         }
         Ok(())
@@ -184,13 +188,13 @@ impl Job {
 
     /// Marks the job finished, stores that and its outputs.
     fn finish(&mut self, store: &dyn Store) -> Result<()> {
-        self.progress.phase = Phase::Finished;
+        self.checkpoint.state = JobState::Finished;
         self.persist(store)?;
         self.store_outputs(store)?;
         tracing::info!(
             "job {} finished: similarity {:.4}",
             self.id,
-            self.progress
+            self.checkpoint
                 .search
                 .result()
                 .map(|r| r.score)

@@ -25,7 +25,7 @@ impl Job {
     /// The outputs `reconstruct` writes, as file name → bytes: the final result, or the current
     /// best of a running job; an error before anything has been scored.
     pub fn outputs(&self) -> Result<BTreeMap<String, Vec<u8>>> {
-        let search = &self.progress.search;
+        let search = &self.checkpoint.search;
         let (assignment, similarity) = match search.result() {
             Some(r) => (r.assignment.clone(), r.score),
             None => search
@@ -48,10 +48,10 @@ impl Job {
                 search,
                 assignment: &assignment,
                 similarity,
-                epsilons: &self.progress.epsilons,
-                used: self.progress.used,
-                photons_simulated: self.progress.photons_simulated,
-                wall_seconds: self.progress.active_seconds,
+                epsilons: &self.checkpoint.epsilons,
+                used: self.checkpoint.used,
+                photons_simulated: self.checkpoint.photons_simulated,
+                wall_seconds: self.checkpoint.active_seconds,
                 engine: self.engine_label(),
                 reproducible: self.reproducible(),
             },

@@ -7,7 +7,7 @@ impl Job {
     pub fn pace(&self) -> (f64, Option<f64>) {
         let elapsed = self.session_started.elapsed().as_secs_f64().max(1e-6);
         let photons_per_second = self.session_photons as f64 / elapsed;
-        let p = self.progress.search.progress();
+        let p = self.checkpoint.search.progress();
         let done_here = p.renders_done.saturating_sub(self.session_renders_start);
         let eta = if !self.is_active() {
             Some(0.0)

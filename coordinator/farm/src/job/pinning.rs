@@ -23,14 +23,14 @@ pub(super) fn initial_pin(params: &JobSpec) -> Option<String> {
 impl Job {
     /// Pins the job to `fingerprint` (the first worker to lease its tasks) and stores it.
     pub fn pin(&mut self, fingerprint: &str, store: &dyn Store) -> Result<()> {
-        self.progress.pinned = Some(fingerprint.to_string());
+        self.checkpoint.pinned = Some(fingerprint.to_string());
         self.steps = Some(Steps::new(self.plan.search_geometry, fingerprint, []));
         self.persist(store)
     }
 
     /// Whether a worker of `fingerprint` may render this job (pinning it if not yet pinned).
     pub fn accepts(&self, fingerprint: &str) -> bool {
-        match self.progress.pinned.as_deref() {
+        match self.checkpoint.pinned.as_deref() {
             None | Some(ANY_ENGINE) => true,
             Some(p) => p == fingerprint,
         }
@@ -38,7 +38,7 @@ impl Job {
 
     /// The engine named in reports.
     pub(super) fn engine_label(&self) -> String {
-        self.progress
+        self.checkpoint
             .pinned
             .clone()
             .unwrap_or_else(|| "not pinned yet".into())
@@ -46,6 +46,6 @@ impl Job {
 
     /// Whether every render comes from one engine, so the result is reproducible.
     pub(super) fn reproducible(&self) -> bool {
-        self.progress.pinned.as_deref() != Some(ANY_ENGINE)
+        self.checkpoint.pinned.as_deref() != Some(ANY_ENGINE)
     }
 }

@@ -1,7 +1,7 @@
 //! Cutting a job's work into render groups, through the search's step driver
 //! ([`scatterfarm_search::steps::Steps`]), and taking the groups back as they complete.
 
-use super::{Job, Phase};
+use super::{Job, JobState};
 use crate::store::Store;
 use crate::work::{Purpose, RenderGroup};
 use anyhow::{Context, Result};
@@ -21,11 +21,11 @@ impl Job {
             return Ok(());
         }
         let fingerprint = self
-            .progress
+            .checkpoint
             .pinned
             .clone()
             .context("a job is planned before it is pinned")?;
-        if self.progress.phase == Phase::Preparing {
+        if self.checkpoint.state == JobState::Preparing {
             for r in self.plan.setup_renders()? {
                 if self.setup.has(r.kind) {
                     continue;
@@ -62,11 +62,11 @@ impl Job {
                 .steps
                 .as_mut()
                 .context("a job is planned before it is pinned")?;
-            match steps.next(&mut self.progress.search, &mut self.progress.used)? {
+            match steps.next(&mut self.checkpoint.search, &mut self.checkpoint.used)? {
                 Next::Finished => return self.finish(store),
                 Next::Submitted => self.persist(store)?,
                 Next::Render(groups) => {
-                    let table = self.progress.search.materials();
+                    let table = self.checkpoint.search.materials();
                     for g in groups {
                         let group = RenderGroup::new(
                             new_group_id(),
@@ -93,9 +93,9 @@ impl Job {
         store: &dyn Store,
     ) -> Result<()> {
         let sources = group.geometry.sources() as u64;
-        self.progress.photons_simulated +=
+        self.checkpoint.photons_simulated +=
             sources * u64::from(group.photons - group.start) * group.items.len() as u64;
-        self.progress.used.scatter_events += group.scatter_events;
+        self.checkpoint.used.scatter_events += group.scatter_events;
         let purpose = group.purpose;
         let photons = group.photons;
         let items = group.items.clone();
@@ -116,7 +116,7 @@ impl Job {
                     .as_mut()
                     .context("a search render completed for a job that is not pinned")?;
                 for (id, score, step) in
-                    steps.complete(&self.progress.search, scoring, photons, &items, sums)?
+                    steps.complete(&self.checkpoint.search, scoring, photons, &items, sums)?
                 {
                     store.put_score(&self.id, &id, score, step)?;
                 }

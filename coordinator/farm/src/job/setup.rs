@@ -1,7 +1,7 @@
 //! The setup's end: ε calibrated and the synthesized target stored, and the scoring they make
 //! rebuilt when a job is restored.
 
-use super::{Job, Phase, Progress};
+use super::{Checkpoint, Job, JobState};
 use crate::store::Store;
 use anyhow::{Context, Result};
 use scatterfarm_job::plan::{Plan, SetupCounts, TargetSource};
@@ -26,11 +26,11 @@ fn decode_f32(bytes: &[u8]) -> Vec<f32> {
 pub(super) fn restored_scoring(
     id: &str,
     plan: &Plan,
-    progress: &Progress,
+    checkpoint: &Checkpoint,
     store: &dyn Store,
 ) -> Result<Option<Scoring>> {
-    Ok(match (&progress.phase, progress.epsilons.is_empty()) {
-        (Phase::Preparing, _) | (_, true) => None,
+    Ok(match (&checkpoint.state, checkpoint.epsilons.is_empty()) {
+        (JobState::Preparing, _) | (_, true) => None,
         (_, false) => {
             let target = match &plan.target {
                 TargetSource::Captured(t) => t.clone(),
@@ -43,7 +43,7 @@ pub(super) fn restored_scoring(
                     photons_per_source: u64::from(*photons),
                 },
             };
-            Some(plan.scoring(target, progress.epsilons.clone()))
+            Some(plan.scoring(target, checkpoint.epsilons.clone()))
         }
     })
 }
@@ -56,16 +56,16 @@ impl Job {
         if matches!(self.plan.target, TargetSource::Synthesized { .. }) {
             store.put_blob(&self.id, TARGET_KEY, &encode_f32(&scoring.target.values))?;
         }
-        let finest = self.progress.search.config().photons.level(u32::MAX);
+        let finest = self.checkpoint.search.config().photons.level(u32::MAX);
         for (photons, e) in &scoring.epsilons {
             tracing::info!(
                 "job {}: ε = {e:.6} at {photons} photons per source",
                 self.id
             );
         }
-        self.progress.epsilon = scoring.epsilons.get(&finest).copied();
-        self.progress.epsilons = scoring.epsilons.clone();
-        self.progress.phase = Phase::Searching;
+        self.checkpoint.epsilon = scoring.epsilons.get(&finest).copied();
+        self.checkpoint.epsilons = scoring.epsilons.clone();
+        self.checkpoint.state = JobState::Searching;
         self.scoring = Some(scoring);
         self.setup = SetupCounts::default();
         self.persist(store)

@@ -66,7 +66,7 @@ impl Scheduler {
             })
             .count();
         if matching == 0 {
-            return Some(match job.progress.pinned.as_deref() {
+            return Some(match job.checkpoint.pinned.as_deref() {
                 Some(p) if p != crate::job::ANY_ENGINE => {
                     format!("waiting for a worker with engine {p}")
                 }

@@ -77,11 +77,11 @@ impl Scheduler {
                 reason = format!(
                     "no job for engine {} (job {id} is pinned to {})",
                     worker.fingerprint_key,
-                    job.progress.pinned.clone().unwrap_or_default()
+                    job.checkpoint.pinned.clone().unwrap_or_default()
                 );
                 continue;
             }
-            if job.progress.pinned.is_none() {
+            if job.checkpoint.pinned.is_none() {
                 tracing::info!("job {id} pinned to {}", worker.fingerprint_key);
                 job.pin(&worker.fingerprint_key, store.as_ref())?;
             }

@@ -127,8 +127,8 @@ impl Scheduler {
                     if job.is_active() {
                         tracing::info!(
                             "resuming job {id} at {} of {} renders",
-                            job.progress.search.progress().renders_done,
-                            job.progress.search.progress().renders_total
+                            job.checkpoint.search.progress().renders_done,
+                            job.checkpoint.search.progress().renders_total
                         );
                     }
                     jobs.insert(id, job);

@@ -2,7 +2,7 @@
 //! deleting them, and listing jobs and workers.
 
 use super::Farm;
-use crate::job::Phase;
+use crate::job::JobState;
 use crate::status::{is_terminal, job_status};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
@@ -101,7 +101,7 @@ impl ClientService for ClientApi {
         let result = tokio::task::spawn_blocking(move || -> Result<pb::JobResult, Status> {
             let scheduler = farm.scheduler();
             let job = scheduler.job(&id)?;
-            let finished = job.progress.phase == Phase::Finished;
+            let finished = job.checkpoint.state == JobState::Finished;
             let files = if finished {
                 job.stored_outputs(scheduler.store())
             } else {
