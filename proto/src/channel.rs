@@ -8,7 +8,7 @@ use crate::v1::MAX_MESSAGE_BYTES;
 use std::time::Duration;
 use tonic::codec::CompressionEncoding;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig};
 
 /// Why a connection could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -34,7 +34,7 @@ pub enum ConnectError {
 
 /// Where and how to reach a coordinator.
 #[derive(Debug, Clone)]
-pub struct Target {
+pub struct Endpoint {
     /// `http://HOST:PORT` or `https://HOST:PORT`.
     pub url: String,
     /// PEM of a private CA that signed the coordinator's certificate (https only).
@@ -45,12 +45,15 @@ pub struct Target {
 /// A channel whose every request carries the token.
 pub type Authed = InterceptedService<Channel, AttachToken>;
 
-impl Target {
-    fn endpoint(&self) -> Result<Endpoint, ConnectError> {
+impl Endpoint {
+    /// The tonic endpoint: the URL with timeouts, keep-alive and, for https, TLS.
+    fn tonic_endpoint(&self) -> Result<tonic::transport::Endpoint, ConnectError> {
         let mut endpoint =
-            Endpoint::from_shared(self.url.clone()).map_err(|source| ConnectError::Url {
-                url: self.url.clone(),
-                source,
+            tonic::transport::Endpoint::from_shared(self.url.clone()).map_err(|source| {
+                ConnectError::Url {
+                    url: self.url.clone(),
+                    source,
+                }
             })?;
         endpoint = endpoint
             .connect_timeout(Duration::from_secs(10))
@@ -75,7 +78,7 @@ impl Target {
     /// Connects now (fails if the coordinator is not reachable).
     pub async fn connect(&self) -> Result<Authed, ConnectError> {
         let channel =
-            self.endpoint()?
+            self.tonic_endpoint()?
                 .connect()
                 .await
                 .map_err(|source| ConnectError::Unreachable {

@@ -1,7 +1,7 @@
 //! The protocol spoken from the test: gRPC clients of a plaintext, token-less coordinator, and
 //! what fake workers answer (well-formed dark counts, matrices of any shape).
 
-use scatterfarm_proto::channel::{Authed, Target};
+use scatterfarm_proto::channel::{Authed, Endpoint};
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::client_service_client::ClientServiceClient;
 use scatterfarm_proto::v1::worker_service_client::WorkerServiceClient;
@@ -36,17 +36,17 @@ impl Rpc {
             .enable_all()
             .build()
             .unwrap();
-        let target = Target {
+        let endpoint = Endpoint {
             url: url.to_string(),
             ca_pem: None,
             token: None,
         };
         let channel = rt
-            .block_on(target.connect())
+            .block_on(endpoint.connect())
             .unwrap_or_else(|e| panic!("cannot connect to {url}: {e}"));
         Rpc {
-            worker: Target::worker_client(channel.clone()),
-            client: Target::client_client(channel),
+            worker: Endpoint::worker_client(channel.clone()),
+            client: Endpoint::client_client(channel),
             rt,
         }
     }

@@ -25,7 +25,7 @@ mod work;
 mod tests;
 
 use scatterfarm_model::engine::{Engine, EngineError};
-use scatterfarm_proto::channel::{ConnectError, Target};
+use scatterfarm_proto::channel::{ConnectError, Endpoint};
 use scatterfarm_proto::convert::fingerprint_to_proto;
 use scatterfarm_proto::v1;
 use std::future::Future;
@@ -36,7 +36,7 @@ use thiserror::Error;
 #[derive(Debug, Clone)]
 pub struct AgentConfig {
     /// The coordinator.
-    pub target: Target,
+    pub endpoint: Endpoint,
     /// The name in worker listings; `HOST/ENGINE-ADAPTER` when `None`.
     pub name: Option<String>,
     /// Announced as is instead of measuring the engine at start.
@@ -125,7 +125,7 @@ async fn start(
         name,
     };
     let connector =
-        session::Connector::new(config.target, request, fingerprint.key(), stop.clone());
+        session::Connector::new(config.endpoint, request, fingerprint.key(), stop.clone());
     work::Worker {
         engine,
         connector,

@@ -3,7 +3,7 @@
 
 use super::retry::{describe, error_chain, is_auth_failure, within, Backoff, Stop};
 use super::AgentError;
-use scatterfarm_proto::channel::{Authed, ConnectError, Target};
+use scatterfarm_proto::channel::{Authed, ConnectError, Endpoint};
 use scatterfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use scatterfarm_proto::v1::{HeartbeatRequest, RegisterRequest};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -48,7 +48,7 @@ impl Drop for Session {
 /// registers, as often as the coordinator forgets us.
 #[derive(Debug)]
 pub(crate) struct Connector {
-    target: Target,
+    endpoint: Endpoint,
     request: RegisterRequest,
     /// The engine fingerprint as one string, for the log.
     engine: String,
@@ -57,9 +57,9 @@ pub(crate) struct Connector {
 }
 
 impl Connector {
-    pub fn new(target: Target, request: RegisterRequest, engine: String, stop: Stop) -> Self {
+    pub fn new(endpoint: Endpoint, request: RegisterRequest, engine: String, stop: Stop) -> Self {
         Connector {
-            target,
+            endpoint,
             request,
             engine,
             client: None,
@@ -68,7 +68,7 @@ impl Connector {
     }
 
     pub fn url(&self) -> &str {
-        &self.target.url
+        &self.endpoint.url
     }
 
     /// Connects if needed and registers, retrying with backoff until it works or shutdown is
@@ -103,9 +103,9 @@ impl Connector {
         if let Some(client) = &self.client {
             return Ok(Ok(client.clone()));
         }
-        match self.target.connect().await {
+        match self.endpoint.connect().await {
             Ok(channel) => {
-                let client = Target::worker_client(channel);
+                let client = Endpoint::worker_client(channel);
                 self.client = Some(client.clone());
                 Ok(Ok(client))
             }

@@ -177,7 +177,7 @@ async fn serve(fake: Arc<Fake>) -> String {
 
 fn config(url: &str, max_tasks: Option<u64>) -> AgentConfig {
     AgentConfig {
-        target: Target {
+        endpoint: Endpoint {
             url: url.into(),
             ca_pem: None,
             token: None,
@@ -511,7 +511,7 @@ async fn a_wrong_token_is_fatal() {
     let fake = Fake::default();
     let url = serve_on(Arc::new(fake), "127.0.0.1:0", Some("right")).await;
     let mut config = config(&url, None);
-    config.target.token = Some("wrong".into());
+    config.endpoint.token = Some("wrong".into());
     let err = Running::start(config, cpu())
         .finish(false)
         .await

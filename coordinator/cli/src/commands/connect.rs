@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
-use scatterfarm_proto::channel::Target;
+use scatterfarm_proto::channel::Endpoint;
 use std::path::{Path, PathBuf};
 
 /// The environment variable that may hold the shared token itself.
@@ -40,8 +40,8 @@ pub struct ConnectArgs {
 }
 
 impl ConnectArgs {
-    /// The validated connection target.
-    pub fn target(&self) -> Result<Target> {
+    /// The validated coordinator endpoint.
+    pub fn endpoint(&self) -> Result<Endpoint> {
         let ca_pem = self
             .tls_ca
             .as_ref()
@@ -54,7 +54,7 @@ impl ConnectArgs {
             "--tls-ca needs an https:// coordinator URL, got {}",
             self.coordinator
         );
-        Ok(Target {
+        Ok(Endpoint {
             url: self.coordinator.clone(),
             ca_pem,
             token: load_token(self.token_file.as_deref())?,

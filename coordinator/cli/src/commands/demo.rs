@@ -11,7 +11,7 @@ use scatterfarm_coordinator::server::{self, ServerConfig};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::report::Report;
 use scatterfarm_job::spec::JobSpec;
-use scatterfarm_proto::channel::Target;
+use scatterfarm_proto::channel::Endpoint;
 use scatterfarm_worker::{self as agent, AgentConfig};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -118,14 +118,14 @@ pub fn run_embedded(
                 eprintln!("status page: http://{bound}/");
                 tokio::spawn(web);
             }
-            let target = Target {
+            let endpoint = Endpoint {
                 url: format!("http://{}", running.address),
                 ca_pem: None,
                 token: None,
             };
             let agent = tokio::spawn(agent::run(
                 AgentConfig {
-                    target: target.clone(),
+                    endpoint: endpoint.clone(),
                     name: Some("embedded".into()),
                     photons_per_second: None,
                     max_tasks: None,
@@ -133,7 +133,7 @@ pub fn run_embedded(
                 engine,
                 until_stop(stop_rx.clone()),
             ));
-            let mut c = client(&target).await?;
+            let mut c = client(&endpoint).await?;
             let id = match existing_job(&running.farm, params, &inputs) {
                 Some(id) => {
                     tracing::info!("resuming job {id} from {}", data.display());

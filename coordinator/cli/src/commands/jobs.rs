@@ -9,7 +9,7 @@ use scatterfarm_coordinator::status::{duration_text, state_name};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::plan::Plan;
 use scatterfarm_job::spec::JobSpec;
-use scatterfarm_proto::channel::{Authed, Target};
+use scatterfarm_proto::channel::{Authed, Endpoint};
 use scatterfarm_proto::convert::fingerprint_from_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::client_service_client::ClientServiceClient;
@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 pub type Client = ClientServiceClient<Authed>;
 
 /// Connects a client.
-pub async fn client(target: &Target) -> Result<Client> {
-    Ok(Target::client_client(target.connect().await?))
+pub async fn client(endpoint: &Endpoint) -> Result<Client> {
+    Ok(Endpoint::client_client(endpoint.connect().await?))
 }
 
 /// Runs `f` on a fresh single-threaded runtime.
@@ -84,9 +84,9 @@ pub async fn submit(client: &mut Client, params: &JobSpec, inputs: Inputs) -> Re
 
 pub fn run_submit(args: SubmitArgs) -> Result<()> {
     let (params, inputs) = read_job(&args.job)?;
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     let id = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         submit(&mut c, &params, inputs).await
     })?;
     println!("{id}");
@@ -176,9 +176,9 @@ pub fn status_line(s: &pb::JobStatus) -> String {
 }
 
 pub fn run_status(args: StatusArgs) -> Result<()> {
-    let target = args.job.connect.target()?;
+    let endpoint = args.job.connect.endpoint()?;
     let s = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         Ok(c.status(pb::JobRef {
             job_id: args.job.id.clone(),
         })
@@ -246,9 +246,9 @@ pub async fn follow(
 }
 
 pub fn run_watch(args: JobArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     let s = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         follow(&mut c, &args.id, false, None).await
     })?;
     eprintln!("{}", status_line(&s));
@@ -295,9 +295,9 @@ pub async fn fetch_result(
 }
 
 pub fn run_result(args: ResultArgs) -> Result<()> {
-    let target = args.job.connect.target()?;
+    let endpoint = args.job.connect.endpoint()?;
     let (partial, status) = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         fetch_result(&mut c, &args.job.id, &args.out).await
     })?;
     if partial {
@@ -317,9 +317,9 @@ pub fn run_result(args: ResultArgs) -> Result<()> {
 }
 
 pub fn run_cancel(args: JobArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         c.cancel(pb::JobRef {
             job_id: args.id.clone(),
         })
@@ -332,9 +332,9 @@ pub fn run_cancel(args: JobArgs) -> Result<()> {
 }
 
 pub fn run_delete(args: JobArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         c.delete(pb::JobRef {
             job_id: args.id.clone(),
         })
@@ -356,9 +356,9 @@ pub struct ListArgs {
 }
 
 pub fn run_jobs(args: ListArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     let jobs = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         Ok(c.list_jobs(pb::ListJobsRequest {})
             .await
             .map_err(|s| status_error("jobs", s))?
@@ -379,9 +379,9 @@ pub fn run_jobs(args: ListArgs) -> Result<()> {
 }
 
 pub fn run_workers(args: ListArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     let workers = block_on(async {
-        let mut c = client(&target).await?;
+        let mut c = client(&endpoint).await?;
         Ok(c.list_workers(pb::ListWorkersRequest {})
             .await
             .map_err(|s| status_error("workers", s))?

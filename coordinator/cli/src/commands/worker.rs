@@ -36,7 +36,7 @@ fn positive_rate(text: &str) -> Result<f64, String> {
 }
 
 pub fn run(args: WorkerArgs) -> Result<()> {
-    let target = args.connect.target()?;
+    let endpoint = args.connect.endpoint()?;
     // The engine renders on its own threads; the runtime only waits on the network.
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -51,7 +51,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     };
     let engine: Arc<dyn Engine> = Arc::from(args.engine.open()?);
     let config = AgentConfig {
-        target,
+        endpoint,
         name: args.name,
         photons_per_second: args.photons_per_second,
         max_tasks: None,

@@ -35,7 +35,7 @@ use scatterfarm_engines::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::plan::Plan;
 use scatterfarm_job::spec::JobSpec;
-use scatterfarm_proto::channel::Target;
+use scatterfarm_proto::channel::Endpoint;
 use scatterfarm_proto::v1 as pb;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -198,12 +198,12 @@ async fn measure(
     coordinator: &ChildCoordinator,
     recording: Arc<Recording>,
 ) -> Result<Measured> {
-    let target = Target {
+    let endpoint = Endpoint {
         url: coordinator.url.clone(),
         ca_pem: None,
         token: None,
     };
-    let mut client = jobs::client(&target).await?;
+    let mut client = jobs::client(&endpoint).await?;
     let mut ids = Vec::new();
     for p in params {
         ids.push(jobs::submit(&mut client, p, inputs.clone()).await?);
@@ -216,7 +216,7 @@ async fn measure(
     for i in 0..args.workers {
         workers.spawn(replay_worker(
             i,
-            target.clone(),
+            endpoint.clone(),
             !args.no_zstd,
             recording.clone(),
             engine.clone(),

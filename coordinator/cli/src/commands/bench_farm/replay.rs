@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use scatterfarm_engines::CpuEngine;
 use scatterfarm_job::plan::Plan;
 use scatterfarm_model::{Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
-use scatterfarm_proto::channel::{Authed, Target};
+use scatterfarm_proto::channel::{Authed, Endpoint};
 use scatterfarm_proto::convert::{counts_to_proto, decode_task, geometry_from_proto};
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::worker_service_client::WorkerServiceClient;
@@ -92,7 +92,7 @@ impl Drop for AbortOnDrop {
 
 fn worker_client(channel: Authed, zstd: bool) -> WorkerClient {
     if zstd {
-        Target::worker_client(channel)
+        Endpoint::worker_client(channel)
     } else {
         // Still accepts zstd; only what this worker sends goes plain.
         WorkerServiceClient::new(channel)
@@ -149,14 +149,14 @@ async fn answer(
 /// One replay worker: registers, heartbeats, leases and answers until `stop`.
 pub(super) async fn replay_worker(
     index: usize,
-    target: Target,
+    endpoint: Endpoint,
     zstd: bool,
     recording: Arc<Recording>,
     engine: Arc<CpuEngine>,
     stats: Arc<Stats>,
     stop: Arc<AtomicBool>,
 ) -> Result<()> {
-    let channel = target.connect().await?;
+    let channel = endpoint.connect().await?;
     let mut client = worker_client(channel, zstd);
     let fingerprint = engine.fingerprint().tagged("replay");
     let registered = client
