@@ -179,9 +179,10 @@ impl Job {
             })?,
             None => anyhow::bail!("job {id}: its progress is missing"),
         };
-        let scoring = match (&progress.phase, progress.epsilons.is_empty()) {
-            (Phase::Preparing, _) | (_, true) => None,
-            (_, false) => {
+        // Past preparation the target (and ε, for the metrics that need it) are known.
+        let scoring = match &progress.phase {
+            Phase::Preparing => None,
+            _ => {
                 let target = match &plan.target {
                     TargetSource::Captured(t) => t.clone(),
                     TargetSource::Synthesized { photons } => Target {
