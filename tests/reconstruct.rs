@@ -334,3 +334,42 @@ fn a_captured_target_is_reconstructed_from_its_files() {
         .collect();
     assert_eq!(map, vec![0, 0, 0, 0, 0, 1, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0]);
 }
+
+/// The likelihood search (deviance on common random numbers, then the refinement stage) finds
+/// the three-material scene, calibrates no ε, and the farm's embedded path (`--data`) ends with
+/// the same map and report as one process.
+#[test]
+fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "--search",
+        "likelihood",
+        "--iterations",
+        "4",
+        "--permutations",
+        "1",
+        "--refine-sweeps",
+        "3",
+    ];
+    let report = reconstruct(dir.path(), THREE, "like", &args);
+    assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
+    assert!(
+        report["epsilons"].as_object().unwrap().is_empty(),
+        "{report:#}"
+    );
+    let data = dir.path().join("data");
+    let mut with_data: Vec<&str> = args.to_vec();
+    with_data.extend(["--data", data.to_str().unwrap()]);
+    let farm = reconstruct(dir.path(), THREE, "like-farm", &with_data);
+    let npy = |o: &str| std::fs::read(dir.path().join(o).join("materials.npy")).unwrap();
+    assert_eq!(npy("like"), npy("like-farm"));
+    let strip = |mut v: serde_json::Value| {
+        let o = v.as_object_mut().unwrap();
+        o.remove("wall_seconds");
+        o.remove("photons_simulated");
+        // The two runs read the scene from files of different names.
+        o["configuration"]["scene"] = serde_json::Value::Null;
+        v
+    };
+    assert_eq!(strip(report), strip(farm));
+}

@@ -3,6 +3,7 @@
 
 use crate::spec::JobSpec;
 use anyhow::Result;
+use scatterfarm_search::refine::RefineConfig;
 use scatterfarm_search::similarity::Metric;
 use scatterfarm_search::{Photons, Race, Seeding, Tiebreak};
 use serde::{Deserialize, Serialize};
@@ -20,6 +21,11 @@ pub enum SearchMode {
     /// and the stabilized-L2 tiebreak where within-ε is saturated.
     #[default]
     Fast,
+    /// The likelihood search: the quad-tree levels pick block materials by the likelihood
+    /// (the two-sample deviance) on common random numbers, then a pixel-level refinement stage
+    /// changes single pixels and moves objects while a change beats the current map by more
+    /// than `refine_z` paired standard errors on fresh seeds (`docs/model.md`, "Refinement").
+    Likelihood,
 }
 
 /// The tiebreak's metric (`--tiebreak`): a metric of the L2 family, or none.
@@ -40,13 +46,14 @@ pub enum TiebreakMetric {
 
 impl SearchMode {
     /// Every mode, in the order a command line lists them.
-    pub const ALL: [SearchMode; 2] = [SearchMode::Paper, SearchMode::Fast];
+    pub const ALL: [SearchMode; 3] = [SearchMode::Paper, SearchMode::Fast, SearchMode::Likelihood];
 
     /// Its name in a job spec and on the command line.
     pub fn name(self) -> &'static str {
         match self {
             SearchMode::Paper => "paper",
             SearchMode::Fast => "fast",
+            SearchMode::Likelihood => "likelihood",
         }
     }
 }
@@ -116,6 +123,27 @@ pub mod fast {
     pub const TIEBREAK_SATURATION: f64 = 3.0;
 }
 
+/// The likelihood search's defaults (`--search likelihood`), each overridable by its own
+/// option. Budgets are shares of the nominal budget (iterations × photons per iteration).
+pub mod likelihood {
+    /// The two-sample deviance: it sees objects whose signal is spread thinly over many
+    /// observations, which a threshold count cannot.
+    pub const METRIC: scatterfarm_search::similarity::Metric =
+        scatterfarm_search::similarity::Metric::Deviance;
+    /// Photons per source of each level, as a share of the nominal budget.
+    pub const LEVEL_SHARES: [f64; 1] = [0.25];
+    /// Re-scoring photons, as a share of the nominal budget.
+    pub const RESCORE_SHARE: f64 = 1.0;
+    /// A refinement sweep's photons per source, as a share of the nominal budget.
+    pub const REFINE_SHARE: f64 = 1.0;
+    /// The confirmation's photons per source, as a share of the nominal budget.
+    pub const CONFIRM_SHARE: f64 = 2.0;
+    /// A change must beat the current map by more than this many paired standard errors.
+    pub const REFINE_Z: f64 = 3.0;
+    /// The most refinement sweeps.
+    pub const REFINE_SWEEPS: u32 = 8;
+}
+
 /// The search options resolved from a mode and its overrides.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SearchOptions {
@@ -126,13 +154,19 @@ pub struct SearchOptions {
     pub tie_z: f64,
     /// The tiebreak's metric and where it decides.
     pub tiebreak: Option<(Metric, Tiebreak)>,
+    /// The pixel-level refinement stage, when on.
+    pub refine: Option<RefineConfig>,
 }
 
 impl JobSpec {
     /// The search options: the mode's defaults with every explicit option over them. `nominal`
     /// is iterations × photons per iteration.
     pub fn search_options(&self, nominal: u32) -> Result<SearchOptions> {
-        let fast = self.search == SearchMode::Fast;
+        let mode = self.search;
+        // The likelihood search shares the fast one's machinery defaults (common random
+        // numbers, early step 2, re-scoring); its own are below.
+        let fast = matches!(mode, SearchMode::Fast | SearchMode::Likelihood);
+        let like = mode == SearchMode::Likelihood;
         let share = |s: f64| ((f64::from(nominal) * s).round() as u32).max(1);
         let per_level = match &self.level_photons {
             Some(v) => {
@@ -146,12 +180,13 @@ impl JobSpec {
                 );
                 v.clone()
             }
+            None if like => likelihood::LEVEL_SHARES.iter().map(|&s| share(s)).collect(),
             None if fast => fast::LEVEL_SHARES.iter().map(|&s| share(s)).collect(),
             None => vec![nominal],
         };
-        let race_share = self
-            .race_share
-            .unwrap_or(if fast { fast::RACE_SHARE } else { 1.0 });
+        let race_share =
+            self.race_share
+                .unwrap_or(if fast && !like { fast::RACE_SHARE } else { 1.0 });
         anyhow::ensure!(
             race_share > 0.0 && race_share <= 1.0,
             "race_share (--race-share) must lie in (0, 1], got {race_share}"
@@ -164,21 +199,51 @@ impl JobSpec {
         let rescore = match self.rescore_photons {
             Some(0) => None,
             Some(n) => Some(n),
+            None if like => Some(share(likelihood::RESCORE_SHARE)),
             None if fast => Some(share(fast::RESCORE_SHARE)),
             None => None,
         };
         let crn = self.common_random_numbers.unwrap_or(fast);
-        let tie_z = self.tie_z.unwrap_or(if fast { fast::TIE_Z } else { 0.0 });
+        let tie_z = self
+            .tie_z
+            .unwrap_or(if fast && !like { fast::TIE_Z } else { 0.0 });
         anyhow::ensure!(
             tie_z.is_finite() && tie_z >= 0.0,
             "tie_z (--tie-z) must be a number ≥ 0, got {tie_z}"
         );
-        let metric = self.metric.unwrap_or(if fast {
+        let metric = self.metric.unwrap_or(if like {
+            likelihood::METRIC
+        } else if fast {
             fast::METRIC
         } else {
             Metric::WithinEpsilon
         });
         let tiebreak = self.tiebreak(fast, metric)?;
+        let refine = match self.refine.unwrap_or(like) {
+            false => None,
+            true => {
+                anyhow::ensure!(
+                    metric == Metric::Deviance,
+                    "refine (--refine) compares maps by the likelihood: it needs --metric deviance, and the metric is {}",
+                    metric.name()
+                );
+                let config = RefineConfig {
+                    photons: self
+                        .refine_photons
+                        .unwrap_or_else(|| share(likelihood::REFINE_SHARE)),
+                    confirm_photons: self
+                        .refine_confirm_photons
+                        .unwrap_or_else(|| share(likelihood::CONFIRM_SHARE)),
+                    z: self.refine_z.unwrap_or(likelihood::REFINE_Z),
+                    max_sweeps: self.refine_sweeps.unwrap_or(likelihood::REFINE_SWEEPS),
+                    move_objects: self.refine_moves.unwrap_or(true),
+                };
+                if let Some(problem) = config.problem() {
+                    anyhow::bail!("refine_* (--refine-*): {problem}");
+                }
+                Some(config)
+            }
+        };
         Ok(SearchOptions {
             metric,
             seeding: if crn {
@@ -197,6 +262,7 @@ impl JobSpec {
             early_step2: self.early_step2.unwrap_or(fast),
             tie_z,
             tiebreak,
+            refine,
         })
     }
 
@@ -266,8 +332,30 @@ mod tests {
                 early_step2: false,
                 tie_z: 0.0,
                 tiebreak: None,
+                refine: None,
             }
         );
+        let like = JobSpec {
+            search: SearchMode::Likelihood,
+            ..Default::default()
+        };
+        let o = like.search_options(4096).unwrap();
+        assert_eq!(o.metric, Metric::Deviance);
+        assert_eq!(o.seeding, Seeding::PerLevel);
+        assert!(o.photons.race.is_none() && o.tiebreak.is_none());
+        let r = o.refine.expect("the likelihood search refines");
+        assert_eq!((r.photons, r.confirm_photons), (4096, 8192));
+        let off = JobSpec {
+            refine: Some(false),
+            ..like.clone()
+        };
+        assert!(off.search_options(4096).unwrap().refine.is_none());
+        let wrong = JobSpec {
+            metric: Some(Metric::WithinEpsilon),
+            ..like
+        };
+        let err = wrong.search_options(4096).unwrap_err().to_string();
+        assert!(err.contains("--metric deviance"), "{err}");
         let fast = JobSpec {
             search: SearchMode::Fast,
             ..Default::default()

@@ -307,8 +307,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         epsilon: s
             .epsilons
             .get(&s.search.config().photons.level(u32::MAX))
-            .copied()
-            .unwrap_or(f64::NAN),
+            .copied(),
         epsilons: s.epsilons.clone(),
         requests: s.used.requests,
         renders: s.used.renders,

@@ -134,6 +134,9 @@ impl Plan {
                 photons: *photons,
             });
         }
+        if !self.needs_epsilon() {
+            return Ok(renders);
+        }
         let homogeneous = Geometry {
             grid: 1,
             ..self.geometry
@@ -167,6 +170,12 @@ impl Plan {
         Ok(renders)
     }
 
+    /// Whether the search's scores need ε: every metric but the likelihood does, and so does
+    /// a tiebreak.
+    pub fn needs_epsilon(&self) -> bool {
+        self.metric != Metric::Deviance || self.secondary.is_some()
+    }
+
     /// The target and ε from the setup renders' counts.
     pub fn finish_setup(&self, counts: &SetupCounts) -> Result<Scoring> {
         let target = match &self.target {
@@ -182,6 +191,9 @@ impl Plan {
                 }
             }
         };
+        if !self.needs_epsilon() {
+            return Ok(self.scoring(target, BTreeMap::new()));
+        }
         let rendered_reference;
         let reference: &[f32] = match &self.calibration_reference {
             Some(r) => r,

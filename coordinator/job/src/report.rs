@@ -59,8 +59,8 @@ pub struct Report {
     pub pixel_accuracy: Option<f64>,
     pub material_sse: Option<f64>,
     pub similarity: f64,
-    /// ε of the finest level's budget.
-    pub epsilon: f64,
+    /// ε of the finest level's budget (none for the likelihood, which needs no ε).
+    pub epsilon: Option<f64>,
     /// ε of every photons-per-source budget the search scored renders of.
     pub epsilons: std::collections::BTreeMap<u32, f64>,
     /// Render requests of the search (answered by a render or by the cache).

@@ -101,6 +101,22 @@ pub struct JobSpec {
     /// of observations a perfect map misses (1 − percentile/100): the tiebreak decides only
     /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
     pub tiebreak_saturation: Option<f64>,
+    /// After the quad-tree levels, refine single pixels and object positions by the likelihood
+    /// (needs the deviance metric; likelihood: true).
+    pub refine: Option<bool>,
+    /// Photons per source of a refinement sweep's renders (likelihood: iterations × photons
+    /// per iteration).
+    pub refine_photons: Option<u32>,
+    /// Photons per source of a refinement's confirmation renders, on a fresh seed
+    /// (likelihood: twice iterations × photons per iteration).
+    pub refine_confirm_photons: Option<u32>,
+    /// A refinement change must beat the current map by more than this many paired standard
+    /// errors (likelihood: 3).
+    pub refine_z: Option<f64>,
+    /// The most refinement sweeps (likelihood: 8).
+    pub refine_sweeps: Option<u32>,
+    /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
+    pub refine_moves: Option<bool>,
     /// A label for job listings (job files only, no flag).
     pub name: Option<String>,
     /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
@@ -141,6 +157,12 @@ impl Default for JobSpec {
             tiebreak: None,
             tiebreak_z: None,
             tiebreak_saturation: None,
+            refine: None,
+            refine_photons: None,
+            refine_confirm_photons: None,
+            refine_z: None,
+            refine_sweeps: None,
+            refine_moves: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,

@@ -8,6 +8,7 @@
 //! contender's full render extends its first-stage render instead of starting again.
 
 use crate::chunks::{render_in_chunks, render_range};
+use crate::likelihood;
 use crate::machine::{Score, Search, Secondary};
 use crate::similarity::{self, Metric, Target};
 use crate::steps::{Next, Steps};
@@ -61,8 +62,19 @@ impl Scoring {
 
     /// The score of a render of `photons` per source.
     pub fn score(&self, counts: &CountMatrix, photons: u32) -> Result<Score> {
-        let epsilon = self.epsilon(photons)?;
         let n = u64::from(photons);
+        if self.metric == Metric::Deviance && self.secondary.is_none() {
+            // The likelihood needs no ε; its standard error is its blocks' spread.
+            let d = likelihood::deviance(&self.target, counts, n)?;
+            let std_error = likelihood::spread(&d.blocks);
+            return Ok(Score {
+                value: d.value,
+                std_error,
+                secondary: None,
+                blocks: d.blocks,
+            });
+        }
+        let epsilon = self.epsilon(photons)?;
         let value = similarity::score(self.metric, &self.target, counts, n, epsilon)?;
         let std_error = if self.with_errors {
             similarity::std_error(self.metric, &self.target, counts, n, epsilon)?
@@ -80,6 +92,7 @@ impl Scoring {
             value,
             std_error,
             secondary,
+            blocks: Vec::new(),
         })
     }
 }

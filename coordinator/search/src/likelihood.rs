@@ -86,6 +86,19 @@ pub fn deviance(
     })
 }
 
+/// The standard error of a score from its blocks' spread (`√B` times their standard deviation):
+/// how much another render of the same map on other photons would differ, with the target
+/// fixed. 0 with fewer than two blocks.
+pub fn spread(blocks: &[f64]) -> f64 {
+    if blocks.len() < 2 {
+        return 0.0;
+    }
+    let n = blocks.len() as f64;
+    let mean = blocks.iter().sum::<f64>() / n;
+    let var = blocks.iter().map(|b| (b - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (n * var).sqrt()
+}
+
 /// The difference `a − b` of two scores split into the same blocks, and its standard error
 /// from the spread of the blocks' differences (`√B` times their standard deviation). `None`
 /// when the blocks do not match or there are fewer than two.

@@ -24,6 +24,7 @@ mod photons;
 mod random;
 mod ties;
 
+use crate::refine::{BlockScore, RefineConfig, Refinement};
 use crate::seeds::{self, Stream};
 use rand_chacha::rand_core::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -80,6 +81,9 @@ pub struct SearchConfig {
     /// Where the primary score is saturated, a secondary score decides between tied
     /// candidates (scores then carry [`Score::secondary`]).
     pub tiebreak: Option<Tiebreak>,
+    /// The pixel-level refinement stage after the last level (`crate::refine`), when set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine: Option<RefineConfig>,
 }
 
 /// Why a search cannot start or go on.
@@ -97,6 +101,8 @@ pub enum SearchError {
     NoRandomMaterials,
     #[error("the material table is full")]
     TableFull,
+    #[error("refinement: {0}")]
+    Refine(String),
     #[error("photons: {0}")]
     Photons(String),
     #[error("expected {expected} scores, got {got}")]
@@ -121,12 +127,17 @@ pub struct RenderRequest {
 
 /// A render's score and its standard error from the render's own Monte Carlo noise
 /// (`similarity::score`); racing compares candidates with it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Score {
     pub value: f64,
     pub std_error: f64,
     /// The tiebreak's score of the same render, when the search has a [`Tiebreak`].
     pub secondary: Option<Secondary>,
+    /// The likelihood score split into interleaved blocks of observations
+    /// ([`crate::likelihood`]): two renders on one seed are compared by their blocks' paired
+    /// differences. Empty for the other metrics.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub blocks: Vec<f64>,
 }
 
 impl Score {
@@ -136,6 +147,7 @@ impl Score {
             value,
             std_error: 0.0,
             secondary: None,
+            blocks: Vec::new(),
         }
     }
 }
@@ -199,6 +211,8 @@ enum Waiting {
     Step(Step),
     /// A level's distinct finalists on the re-scoring seed.
     Rescore(Vec<LevelResult>),
+    /// The refinement stage's requests ([`Search::refinement`]).
+    Refine,
 }
 
 /// The search's position inside a level.
@@ -241,6 +255,12 @@ pub struct Search {
     pending: Vec<RenderRequest>,
     /// What `pending` is for (`None` once finished).
     waiting: Option<Waiting>,
+    /// The refinement stage, once the last level has finished (with `config.refine`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    refinement: Option<Refinement>,
+    /// The refinement's final map and its score on its last confirmation seed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    refined: Option<LevelResult>,
     finished: bool,
 }
 
@@ -256,6 +276,9 @@ impl Search {
         }
         if let Some(problem) = config.photons.problem() {
             return Err(SearchError::Photons(problem));
+        }
+        if let Some(problem) = config.refine.as_ref().and_then(|r| r.problem()) {
+            return Err(SearchError::Refine(problem));
         }
         match &config.candidates {
             Candidates::Dictionary(d) if d.is_empty() => return Err(SearchError::EmptyDictionary),
@@ -277,6 +300,8 @@ impl Search {
             state: None,
             pending: Vec::new(),
             waiting: None,
+            refinement: None,
+            refined: None,
             finished: false,
         };
         let candidates = search.level_candidates(0, &[])?;
@@ -323,23 +348,43 @@ impl Search {
         &self.levels
     }
 
-    /// The final answer, once finished.
+    /// The final answer, once finished: the refined map when the search refines, else the
+    /// last level's best.
     pub fn result(&self) -> Option<&LevelResult> {
         if self.finished {
-            self.levels.last()
+            self.refined.as_ref().or(self.levels.last())
         } else {
             None
         }
     }
 
-    /// Every photons-per-source value the search renders with (each needs its own ε).
-    pub fn budgets(&self) -> Vec<u32> {
-        self.config.photons.budgets(self.max_level() + 1)
+    /// The refinement stage, once it has started.
+    pub fn refinement(&self) -> Option<&Refinement> {
+        self.refinement.as_ref()
     }
 
-    /// The best assignment known now: the current permutation's `M^{i−1}` if it beats the
-    /// last finished level, else that level's best.
+    /// Every photons-per-source value the search renders with (each needs its own ε).
+    pub fn budgets(&self) -> Vec<u32> {
+        let mut budgets = self.config.photons.budgets(self.max_level() + 1);
+        if let Some(r) = &self.config.refine {
+            budgets.extend([r.photons, r.confirm_photons]);
+            budgets.sort_unstable();
+            budgets.dedup();
+        }
+        budgets
+    }
+
+    /// The best assignment known now: during refinement its current map; else the current
+    /// permutation's `M^{i−1}` if it beats the last finished level, else that level's best.
+    /// (Scores of different seeds and stages are not comparable to the refinement's, so its
+    /// map is shown as soon as it has a score.)
     pub fn current_best(&self) -> Option<(Vec<u16>, f64)> {
+        if let Some(r) = self.refined.as_ref() {
+            return Some((r.assignment.clone(), r.score));
+        }
+        if let Some((map, Some(score))) = self.refinement.as_ref().map(|r| r.current()) {
+            return Some((map.to_vec(), score));
+        }
         let finished = self.levels.last().map(|l| (l.assignment.clone(), l.score));
         let in_level = self.state.as_ref().and_then(|s| {
             let best = s.best.as_ref().map(|b| (b.assignment.clone(), b.score));
@@ -416,10 +461,20 @@ impl Search {
             let before: u64 = (0..level)
                 .map(|l| self.level_requests(l, self.level_d(l)))
                 .sum();
-            before
-                + (level..levels)
-                    .map(|l| self.level_requests(l, d))
-                    .sum::<u64>()
+            let refine = match (&self.config.refine, &self.refinement) {
+                (Some(r), None) => {
+                    u64::from(r.max_sweeps.min(2))
+                        * Refinement::requests_per_sweep(self.pixels() as u64, d.max(2))
+                }
+                (_, Some(r)) => r.requests_left_estimate(),
+                (None, None) => 0,
+            };
+            let levels_left: u64 = if self.state.is_some() {
+                (level..levels).map(|l| self.level_requests(l, d)).sum()
+            } else {
+                0
+            };
+            before + levels_left + refine
         };
         Progress {
             level,
@@ -667,6 +722,7 @@ impl Search {
                 Ok(())
             }
             Waiting::Step(step) => self.step_scored(step, scores),
+            Waiting::Refine => self.refine_scored(scores),
             Waiting::Rescore(finalists) => {
                 // The best re-scored finalist (ties: the earlier permutation).
                 let best = self.rule().rescored(scores).unwrap_or(0);
@@ -718,7 +774,12 @@ impl Search {
         // Ties (the paper's rule, `ties`): inside a step the earliest candidate tied with the
         // best, between the steps step 2 unless step 1 beats it (its "otherwise").
         let rule = self.rule();
-        let score_of = |c: usize| evaluated.iter().position(|&e| e == c).map(|k| scores[k]);
+        let score_of = |c: usize| {
+            evaluated
+                .iter()
+                .position(|&e| e == c)
+                .map(|k| scores[k].clone())
+        };
         let best_in = |range: std::ops::Range<usize>| {
             let scored: Vec<(usize, Score)> =
                 range.filter_map(|c| score_of(c).map(|s| (c, s))).collect();
@@ -808,15 +869,78 @@ impl Search {
 
     fn after_level(&mut self) -> Result<(), SearchError> {
         let next = self.levels.len() as u32;
-        if next > self.max_level() {
-            self.finished = true;
-            self.state = None;
-            self.pending.clear();
-            self.waiting = None;
-            Ok(())
-        } else {
-            self.start_level(next)
+        if next <= self.max_level() {
+            return self.start_level(next);
         }
+        self.state = None;
+        match (self.config.refine.clone(), self.levels.last().cloned()) {
+            (Some(config), Some(last)) => {
+                let materials = match &self.config.candidates {
+                    Candidates::Dictionary(d) => d.clone(),
+                    Candidates::Random { .. } => distinct(&last.assignment),
+                };
+                self.refinement = Some(Refinement::new(
+                    config,
+                    self.config.grid,
+                    materials,
+                    self.config.seed,
+                    last.assignment,
+                ));
+                self.emit_refinement();
+                Ok(())
+            }
+            _ => {
+                self.finish();
+                Ok(())
+            }
+        }
+    }
+
+    fn finish(&mut self) {
+        self.finished = true;
+        self.state = None;
+        self.pending.clear();
+        self.waiting = None;
+    }
+
+    /// Makes the refinement's requests pending, or ends the search when it has finished.
+    fn emit_refinement(&mut self) {
+        let Some(r) = self.refinement.as_ref() else {
+            self.finish();
+            return;
+        };
+        if r.is_finished() {
+            let level = self.max_level();
+            let (map, score) = r.current();
+            let last = self.levels.last();
+            self.refined = Some(LevelResult {
+                level,
+                assignment: map.to_vec(),
+                score: score.or(last.map(|l| l.score)).unwrap_or(0.0),
+                permutation: last.map_or(0, |l| l.permutation),
+            });
+            self.finish();
+            return;
+        }
+        let requests = r.pending().to_vec();
+        self.emit(requests, Waiting::Refine);
+    }
+
+    /// The refinement's requests came back.
+    fn refine_scored(&mut self, scores: &[Score]) -> Result<(), SearchError> {
+        let Some(r) = self.refinement.as_mut() else {
+            return Err(SearchError::Finished);
+        };
+        let blocks: Vec<BlockScore> = scores
+            .iter()
+            .map(|s| BlockScore {
+                value: s.value,
+                blocks: &s.blocks,
+            })
+            .collect();
+        r.submit(&blocks).map_err(SearchError::Refine)?;
+        self.emit_refinement();
+        Ok(())
     }
 
     /// The materials of the table, without names.

@@ -162,6 +162,16 @@ impl Refinement {
         pixels * d.saturating_sub(1) + 1 + 3
     }
 
+    /// Requests still to come, on a guess of one more sweep and its confirmation.
+    pub fn requests_left_estimate(&self) -> u64 {
+        if self.is_finished() {
+            return 0;
+        }
+        let pixels = self.current.len() as u64;
+        let d = self.materials.len() as u64;
+        self.pending.len() as u64 + Self::requests_per_sweep(pixels, d)
+    }
+
     fn emit_sweep(&mut self) {
         if self.sweep >= self.config.max_sweeps {
             self.waiting = None;

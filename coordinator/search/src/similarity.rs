@@ -29,16 +29,21 @@ pub enum Metric {
     /// intensity (Anscombe's transform). No weight depends on either noisy side, so the metric
     /// favours neither darker nor brighter candidates.
     L2Stabilized,
+    /// Minus the two-sample Poisson deviance (`crate::likelihood`): a log-likelihood ratio
+    /// honest about the noise of both target and render, compared between renders on common
+    /// photons by paired standard errors.
+    Deviance,
 }
 
 impl Metric {
     /// Every metric, in the order a command line lists them.
-    pub const ALL: [Metric; 5] = [
+    pub const ALL: [Metric; 6] = [
         Metric::WithinEpsilon,
         Metric::L2,
         Metric::L2InverseIntensity,
         Metric::L2Pooled,
         Metric::L2Stabilized,
+        Metric::Deviance,
     ];
 
     /// Its name in a job spec and on the command line (the serde name).
@@ -49,6 +54,7 @@ impl Metric {
             Metric::L2InverseIntensity => "l2-inverse-intensity",
             Metric::L2Pooled => "l2-pooled",
             Metric::L2Stabilized => "l2-stabilized",
+            Metric::Deviance => "deviance",
         }
     }
 }
@@ -113,6 +119,7 @@ pub fn score(
         .zip(&counts.counts)
         .map(|(&r, &c)| (r, fraction(c, photons_per_source)));
     Ok(match metric {
+        Metric::Deviance => crate::likelihood::deviance(target, counts, photons_per_source)?.value,
         Metric::WithinEpsilon => {
             let within = pairs
                 .filter(|&(r, s)| r == s || (f64::from(r) - f64::from(s)).abs() < epsilon)
@@ -200,6 +207,10 @@ pub fn std_error(
         p * (1.0 - p) / n
     };
     let variance: f64 = match metric {
+        Metric::Deviance => {
+            let d = crate::likelihood::deviance(target, counts, photons_per_source)?;
+            return Ok(crate::likelihood::spread(&d.blocks));
+        }
         Metric::WithinEpsilon => {
             let sum: f64 = target
                 .values

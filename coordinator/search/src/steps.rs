@@ -190,7 +190,7 @@ impl Steps {
         }
         let scores: Vec<Score> = pending
             .iter()
-            .map(|(p, _)| self.scores[&p.identity].0)
+            .map(|(p, _)| self.scores[&p.identity].0.clone())
             .collect();
         self.count(search, &pending, used);
         search.submit_scores(&scores)?;
@@ -256,7 +256,7 @@ impl Steps {
             let score = scoring
                 .score(&counts, photons)
                 .with_context(|| format!("scoring a render of {photons} photons per source"))?;
-            self.scores.insert(item.identity, (score, step));
+            self.scores.insert(item.identity, (score.clone(), step));
             new.push((item.identity, score, step));
             if photons < full && level == self.prefix_level {
                 let key = (item.item.assignment.clone(), item.item.seed);

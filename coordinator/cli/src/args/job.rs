@@ -115,6 +115,30 @@ pub struct JobArgs {
     /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
     #[arg(long, value_name = "FACTOR")]
     pub tiebreak_saturation: Option<f64>,
+    /// After the quad-tree levels, refine single pixels and object positions by the
+    /// likelihood, accepting a change only when it beats the current map by more than
+    /// --refine-z paired standard errors on a fresh seed (needs --metric deviance;
+    /// likelihood: true).
+    #[arg(long, value_name = "BOOL")]
+    pub refine: Option<bool>,
+    /// Photons per source of a refinement sweep's renders (likelihood: iterations × photons
+    /// per iteration).
+    #[arg(long, value_name = "N")]
+    pub refine_photons: Option<u32>,
+    /// Photons per source of a refinement's confirmation renders (likelihood: twice
+    /// iterations × photons per iteration).
+    #[arg(long, value_name = "N")]
+    pub refine_confirm_photons: Option<u32>,
+    /// A refinement change must beat the current map by more than this many paired standard
+    /// errors (likelihood: 3).
+    #[arg(long, value_name = "Z")]
+    pub refine_z: Option<f64>,
+    /// The most refinement sweeps (likelihood: 8).
+    #[arg(long, value_name = "N")]
+    pub refine_sweeps: Option<u32>,
+    /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
+    #[arg(long, value_name = "BOOL")]
+    pub refine_moves: Option<bool>,
 }
 
 impl JobArgs {
@@ -149,6 +173,12 @@ impl JobArgs {
             tiebreak: self.tiebreak,
             tiebreak_z: self.tiebreak_z,
             tiebreak_saturation: self.tiebreak_saturation,
+            refine: self.refine,
+            refine_photons: self.refine_photons,
+            refine_confirm_photons: self.refine_confirm_photons,
+            refine_z: self.refine_z,
+            refine_sweeps: self.refine_sweeps,
+            refine_moves: self.refine_moves,
             ..JobSpec::default()
         }
     }

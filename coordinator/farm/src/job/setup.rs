@@ -29,9 +29,10 @@ pub(super) fn restored_scoring(
     checkpoint: &Checkpoint,
     store: &dyn Store,
 ) -> Result<Option<Scoring>> {
-    Ok(match (&checkpoint.state, checkpoint.epsilons.is_empty()) {
-        (JobState::Preparing, _) | (_, true) => None,
-        (_, false) => {
+    // Past preparation the target (and ε, for the metrics that need it) are known.
+    Ok(match &checkpoint.state {
+        JobState::Preparing => None,
+        _ => {
             let target = match &plan.target {
                 TargetSource::Captured(t) => t.clone(),
                 TargetSource::Synthesized { photons } => Target {

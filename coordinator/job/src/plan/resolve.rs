@@ -106,6 +106,7 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
             early_step2: options.early_step2,
             tie_z: options.tie_z,
             tiebreak: options.tiebreak.map(|(_, t)| t),
+            refine: options.refine.clone(),
         },
         table,
     )?;

@@ -23,6 +23,7 @@ fn search(grid: u32, permutations: u32, seed: u64, dictionary: Vec<u16>) -> Sear
         early_step2: false,
         tie_z: 0.0,
         tiebreak: None,
+        refine: None,
     };
     Search::new(config, table(&names)).unwrap()
 }
@@ -218,6 +219,7 @@ fn unknown_materials_grow_the_table_and_keep_inherited_candidates() {
         early_step2: false,
         tie_z: 0.0,
         tiebreak: None,
+        refine: None,
     };
     let mut s = Search::new(config, MaterialTable::default()).unwrap();
     assert_eq!(s.table().len(), 3);
@@ -253,6 +255,7 @@ fn bad_configurations_and_submissions_are_refused() {
                 early_step2: false,
                 tie_z: 0.0,
                 tiebreak: None,
+                refine: None,
             },
             t.clone(),
         )
@@ -301,6 +304,7 @@ fn per_level_seeding_shares_one_seed_per_level() {
             early_step2: false,
             tie_z: 0.0,
             tiebreak: None,
+            refine: None,
         },
         table(&["moderate", "opaque"]),
     )
@@ -334,6 +338,7 @@ fn configured(grid: u32, permutations: u32, d: u16, seeding: Seeding, photons: P
             early_step2: false,
             tie_z: 0.0,
             tiebreak: None,
+            refine: None,
         },
         table(&names),
     )
@@ -352,6 +357,7 @@ fn score(value: f64, std_error: f64) -> Score {
         value,
         std_error,
         secondary: None,
+        blocks: Vec::new(),
     }
 }
 
@@ -598,4 +604,85 @@ fn scores_within_tie_z_standard_errors_tie_as_in_the_paper() {
         1,
         "step 2 won the tie: π₁ is back to M⁰'s material"
     );
+}
+
+/// A likelihood-like score with blocks: minus the wrong pixels (worth 8 each, spread evenly
+/// over 8 blocks), plus seed noise that is the same for every map of one seed (so pairs cancel
+/// it), as common random numbers make it.
+fn blocked(truth: &[u16], r: &RenderRequest) -> Score {
+    let wrong = r
+        .assignment
+        .iter()
+        .zip(truth)
+        .filter(|(a, b)| a != b)
+        .count() as f64;
+    let blocks: Vec<f64> = (0..8)
+        .map(|b| -wrong + (r.seed % 89) as f64 * 0.1 + f64::from(b) * 0.01)
+        .collect();
+    Score {
+        value: blocks.iter().sum(),
+        std_error: 0.0,
+        secondary: None,
+        blocks,
+    }
+}
+
+#[test]
+fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
+    let names = ["moderate", "opaque", "mild"];
+    let refine = RefineConfig {
+        photons: 200,
+        confirm_photons: 400,
+        z: 3.0,
+        max_sweeps: 6,
+        move_objects: true,
+    };
+    let config = SearchConfig {
+        grid: 4,
+        permutations: 1,
+        seed: 3,
+        candidates: Candidates::Dictionary(vec![0, 1, 2]),
+        seeding: Seeding::PerLevel,
+        photons: Photons::uniform(100),
+        early_step2: true,
+        tie_z: 0.0,
+        tiebreak: None,
+        refine: Some(refine),
+    };
+    let mut s = Search::new(config, table(&names)).unwrap();
+    assert!(s.budgets().contains(&200) && s.budgets().contains(&400));
+    let mut truth = vec![0u16; 16];
+    truth[5] = 2;
+    truth[10] = 1;
+    let mut refining = 0;
+    let mut restored_at = None;
+    while !s.is_finished() {
+        let scores: Vec<Score> = s.pending().iter().map(|r| blocked(&truth, r)).collect();
+        if s.refinement().is_some() {
+            refining += 1;
+            assert!(s
+                .pending()
+                .iter()
+                .all(|r| r.photons == 200 || r.photons == 400));
+            // A checkpoint taken during refinement ends the same.
+            if restored_at.is_none() {
+                let json = serde_json::to_string(&s).unwrap();
+                let mut copy: Search = serde_json::from_str(&json).unwrap();
+                let mut c = copy.clone();
+                while !c.is_finished() {
+                    let sc: Vec<Score> = c.pending().iter().map(|r| blocked(&truth, r)).collect();
+                    c.submit_scores(&sc).unwrap();
+                }
+                restored_at = Some(c.result().unwrap().assignment.clone());
+                copy.submit_scores(&scores).unwrap();
+            }
+        }
+        s.submit_scores(&scores).unwrap();
+    }
+    assert!(refining >= 1, "the refinement ran");
+    let result = s.result().unwrap();
+    assert_eq!(result.assignment, truth);
+    assert_eq!(restored_at.as_ref(), Some(&truth));
+    let history = s.refinement().unwrap().history();
+    assert_eq!(history.last().map(|h| h.candidates), Some(0));
 }

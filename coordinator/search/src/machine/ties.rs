@@ -46,14 +46,20 @@ pub struct Rule {
 }
 
 impl Rule {
-    /// Whether `a` beats `b` on the primary score by more than `tie_z` standard errors.
-    pub fn beats(&self, a: Score, b: Score) -> bool {
-        a.value > b.value + self.tie_z * combined(a.std_error, b.std_error)
+    /// Whether `a` beats `b` on the primary score by more than `tie_z` standard errors: of
+    /// their paired difference when both carry likelihood blocks (renders on common photons),
+    /// else of the two renders' errors combined as if independent.
+    pub fn beats(&self, a: &Score, b: &Score) -> bool {
+        let se = match crate::likelihood::paired(&a.blocks, &b.blocks) {
+            Some((_, se)) => se,
+            None => combined(a.std_error, b.std_error),
+        };
+        a.value > b.value + self.tie_z * se
     }
 
     /// Whether the tiebreak prefers `a` to `b`: `b`'s primary score is saturated and `a`'s
     /// secondary score beats `b`'s by more than the tiebreak's margin.
-    fn breaks(&self, a: Score, b: Score) -> bool {
+    fn breaks(&self, a: &Score, b: &Score) -> bool {
         match (self.tiebreak, a.secondary, b.secondary) {
             (Some(t), Some(x), Some(y)) => {
                 b.value >= t.from && x.value > y.value + t.z * combined(x.std_error, y.std_error)
@@ -67,14 +73,12 @@ impl Rule {
     pub fn best(&self, scored: &[Scored]) -> Option<Scored> {
         let top = scored
             .iter()
-            .copied()
             .reduce(|b, v| if b.1.value >= v.1.value { b } else { v })?;
-        let tied: Vec<Scored> = scored
+        let tied: Vec<&Scored> = scored
             .iter()
-            .copied()
-            .filter(|&(_, v)| !self.beats(top.1, v))
+            .filter(|(_, v)| !self.beats(&top.1, v))
             .collect();
-        let first = *tied.first()?;
+        let first = (*tied.first()?).clone();
         if self.tiebreak.is_none() {
             return Some(first);
         }
@@ -85,8 +89,8 @@ impl Rule {
                 (Some(x), Some(y)) if y.value > x.value => v,
                 _ => b,
             })?;
-        Some(if self.breaks(second.1, first.1) {
-            second
+        Some(if self.breaks(&second.1, &first.1) {
+            second.clone()
         } else {
             first
         })
@@ -96,8 +100,8 @@ impl Rule {
     /// primary score or (tied on it) by the tiebreak; otherwise step 2's.
     pub fn between(&self, one: Option<Scored>, two: Option<Scored>) -> Option<Scored> {
         match (one, two) {
-            (Some(a), Some(b)) if self.beats(a.1, b.1) => Some(a),
-            (Some(a), Some(b)) if !self.beats(b.1, a.1) && self.breaks(a.1, b.1) => Some(a),
+            (Some(a), Some(b)) if self.beats(&a.1, &b.1) => Some(a),
+            (Some(a), Some(b)) if !self.beats(&b.1, &a.1) && self.breaks(&a.1, &b.1) => Some(a),
             (_, Some(b)) => Some(b),
             (a, None) => a,
         }
@@ -110,7 +114,7 @@ impl Rule {
     /// the earlier).
     pub fn rescored(&self, scores: &[Score]) -> Option<usize> {
         if self.tiebreak.is_some() {
-            let mut scored: Vec<Scored> = scores.iter().copied().enumerate().collect();
+            let mut scored: Vec<Scored> = scores.iter().cloned().enumerate().collect();
             if !scored.is_empty() {
                 scored.rotate_right(1);
             }
@@ -134,6 +138,7 @@ mod tests {
             value,
             std_error,
             secondary: secondary.map(|(value, std_error)| Secondary { value, std_error }),
+            blocks: Vec::new(),
         }
     }
 
@@ -180,20 +185,30 @@ mod tests {
     fn between_steps_step_two_keeps_ties_unless_the_tiebreak_prefers_step_one() {
         let one = (0, s(0.995, 0.001, Some((-90.0, 2.0))));
         let two = (3, s(0.996, 0.001, Some((-100.0, 2.0))));
-        assert_eq!(RULE.between(Some(one), Some(two)).map(|b| b.0), Some(0));
+        assert_eq!(
+            RULE.between(Some(one.clone()), Some(two.clone()))
+                .map(|b| b.0),
+            Some(0)
+        );
         let plain = Rule {
             tie_z: 1.0,
             tiebreak: None,
         };
-        assert_eq!(plain.between(Some(one), Some(two)).map(|b| b.0), Some(3));
+        assert_eq!(
+            plain
+                .between(Some(one.clone()), Some(two.clone()))
+                .map(|b| b.0),
+            Some(3)
+        );
         // Step 2 clearly ahead on within-ε: step 2, whatever the secondary says.
         let ahead = (3, s(0.9999, 0.0001, Some((-100.0, 2.0))));
         let behind = (0, s(0.995, 0.0001, Some((-10.0, 2.0))));
         assert_eq!(
-            RULE.between(Some(behind), Some(ahead)).map(|b| b.0),
+            RULE.between(Some(behind.clone()), Some(ahead.clone()))
+                .map(|b| b.0),
             Some(3)
         );
-        assert_eq!(RULE.between(Some(one), None).map(|b| b.0), Some(0));
+        assert_eq!(RULE.between(Some(one.clone()), None).map(|b| b.0), Some(0));
         assert_eq!(RULE.between(None, None), None);
     }
 
