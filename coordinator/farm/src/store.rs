@@ -63,6 +63,33 @@ pub trait Store: Send + Sync {
     fn flush(&self) -> Result<(), StoreError>;
 }
 
+/// A stored score's value bytes: value, step and standard error (24 bytes), then the
+/// secondary score and its error when there is one (40 bytes); anything else is damaged.
+pub fn decode_score(v: &[u8]) -> Result<(Score, u64), StoreError> {
+    if ![24, 40].contains(&v.len()) {
+        return Err(StoreError::Damaged {
+            what: "score",
+            detail: format!("{} bytes, expected 24 or 40", v.len()),
+        });
+    }
+    let word = |i: usize| {
+        let mut b = [0u8; 8];
+        if let Some(src) = v.get(i * 8..i * 8 + 8) {
+            b.copy_from_slice(src);
+        }
+        b
+    };
+    let score = Score {
+        value: f64::from_le_bytes(word(0)),
+        std_error: f64::from_le_bytes(word(2)),
+        secondary: (v.len() == 40).then(|| Secondary {
+            value: f64::from_le_bytes(word(3)),
+            std_error: f64::from_le_bytes(word(4)),
+        }),
+    };
+    Ok((score, u64::from_le_bytes(word(1))))
+}
+
 /// The sled store of a data folder.
 pub struct SledStore {
     db: sled::Db,
@@ -204,28 +231,8 @@ impl Store for SledStore {
                 what: "score key",
                 detail: format!("{} bytes", k.len()),
             })?;
-            if ![24, 40].contains(&v.len()) {
-                return Err(StoreError::Damaged {
-                    what: "score",
-                    detail: format!("{} bytes", v.len()),
-                });
-            }
-            let word = |i: usize| {
-                let mut b = [0u8; 8];
-                if let Some(src) = v.get(i * 8..i * 8 + 8) {
-                    b.copy_from_slice(src);
-                }
-                b
-            };
-            let score = Score {
-                value: f64::from_le_bytes(word(0)),
-                std_error: f64::from_le_bytes(word(2)),
-                secondary: (v.len() == 40).then(|| Secondary {
-                    value: f64::from_le_bytes(word(3)),
-                    std_error: f64::from_le_bytes(word(4)),
-                }),
-            };
-            out.insert(id, (score, u64::from_le_bytes(word(1))));
+            let (score, step) = decode_score(&v)?;
+            out.insert(id, (score, step));
         }
         Ok(out)
     }
