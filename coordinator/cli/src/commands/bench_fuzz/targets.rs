@@ -17,13 +17,22 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Mutex;
 
+/// An input: one or more parts (an NPY and its sidecar, a task and its result).
+pub type Input = Vec<Vec<u8>>;
+
+/// A structure-aware generator of inputs.
+pub type Generator = fn(&mut Mutator) -> Input;
+
+/// Stored scores by job: identity and value bytes.
+type ScoreBytes = BTreeMap<String, Vec<([u8; 32], Vec<u8>)>>;
+
 /// One parser under the fuzzer.
 pub struct Target {
     pub name: &'static str,
     /// Valid inputs, each of one or more parts.
     pub seeds: Vec<Vec<Vec<u8>>>,
     /// Structure-aware inputs (fields of the format set to values worth trying), if any.
-    pub generate: Option<fn(&mut Mutator) -> Vec<Vec<u8>>>,
+    pub generate: Option<Generator>,
     /// Parses an input; `true` when it is accepted.
     pub run: fn(&[Vec<u8>]) -> bool,
 }
@@ -119,7 +128,7 @@ fn npy_bytes(
     let mut header =
         format!("{{'descr': '{descr}', 'fortran_order': {fortran}, 'shape': {shape}, }}");
     let pre = if version == 1 { 10 } else { 12 };
-    while (pre + header.len() + 1) % 64 != 0 {
+    while !(pre + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');
@@ -224,7 +233,7 @@ pub struct MemStore {
     records: Mutex<BTreeMap<String, Vec<u8>>>,
     progress: Mutex<BTreeMap<String, Vec<u8>>>,
     blobs: Mutex<BTreeMap<(String, String), Vec<u8>>>,
-    scores: Mutex<BTreeMap<String, Vec<([u8; 32], Vec<u8>)>>>,
+    scores: Mutex<ScoreBytes>,
 }
 
 fn locked<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
