@@ -373,3 +373,51 @@ fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
     };
     assert_eq!(strip(report), strip(farm));
 }
+
+/// Issue 17: a 100-byte NPY whose header claims a (2³⁰, 2³⁰) float32 array aborted the process
+/// with a 4 EiB allocation; it is now refused, naming the file and the expected shape, before
+/// anything is allocated.
+#[test]
+fn a_hostile_npy_header_is_refused_not_allocated() {
+    let dir = tempfile::tempdir().unwrap();
+    let dict = "{'descr': '<f4', 'fortran_order': False, 'shape': (1073741824, 1073741824), }";
+    let mut header = dict.to_string();
+    while !(10 + header.len() + 1).is_multiple_of(64) {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    std::fs::write(dir.path().join("evil.npy"), &npy).unwrap();
+    std::fs::write(
+        dir.path().join("evil.json"),
+        r#"{"format": "scatterfarm-observation/1", "size_mm": 16.0, "positions": 16,
+            "directions": 3, "photons_per_source": 100}"#,
+    )
+    .unwrap();
+    let mut cmd = scatterfarm();
+    cmd.current_dir(dir.path()).args([
+        "reconstruct",
+        "--target",
+        "evil.npy",
+        "--calibration",
+        "evil.npy",
+        "--calibration-material",
+        "moderate",
+        "--dictionary",
+        "moderate,mild",
+        "--engine",
+        "cpu",
+        "--out",
+        "o",
+    ]);
+    let err = output(cmd).fails();
+    assert!(
+        err.contains("evil.npy")
+            && err.contains("[1073741824, 1073741824]")
+            && err.contains("expected (48, 48)")
+            && !err.contains("memory allocation"),
+        "{err}"
+    );
+}

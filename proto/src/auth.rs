@@ -1,7 +1,8 @@
 //! The shared token: how a client attaches it and how a server checks it.
 //!
 //! A token travels as gRPC metadata `authorization: Bearer TOKEN`. The server side compares in
-//! constant time so a wrong token says nothing about the right one.
+//! constant time so a wrong token says nothing about the right one. A token file is read only up
+//! to [`MAX_TOKEN_FILE_BYTES`], and its token must be one that a header can carry.
 
 use tonic::metadata::MetadataValue;
 use tonic::{Request, Status};
@@ -74,17 +75,49 @@ impl tonic::service::Interceptor for RequireToken {
     }
 }
 
-/// Reads a token file: its first line, trimmed. Empty files are an error.
+/// The largest token file read.
+pub const MAX_TOKEN_FILE_BYTES: u64 = 64 * 1024;
+
+/// Reads a token file: its first line, trimmed. Empty files are an error, and so is a file
+/// larger than [`MAX_TOKEN_FILE_BYTES`] (checked before it is read, so a device or a huge file
+/// is refused rather than read).
 pub fn read_token_file(path: &std::path::Path) -> std::io::Result<String> {
-    let text = std::fs::read_to_string(path)?;
-    let token = text.lines().next().unwrap_or("").trim().to_string();
-    if token.is_empty() {
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::InvalidData,
-            format!("{} holds no token", path.display()),
-        ));
+    use std::io::Read;
+    let file = std::fs::File::open(path)?;
+    let mut bytes = Vec::new();
+    file.take(MAX_TOKEN_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)?;
+    parse_token_file(&bytes, path)
+}
+
+/// A token file's token from its bytes (`path` names it in errors): the first line, trimmed,
+/// of visible ASCII characters and spaces (what a header value can carry).
+pub fn parse_token_file(bytes: &[u8], path: &std::path::Path) -> std::io::Result<String> {
+    let invalid = |message: String| std::io::Error::new(std::io::ErrorKind::InvalidData, message);
+    if bytes.len() as u64 > MAX_TOKEN_FILE_BYTES {
+        return Err(invalid(format!(
+            "{} is larger than the {MAX_TOKEN_FILE_BYTES} bytes a token file may have",
+            path.display()
+        )));
     }
-    Ok(token)
+    let line = bytes.split(|&b| b == b'\n').next().unwrap_or(&[]);
+    let text = std::str::from_utf8(line).map_err(|_| {
+        invalid(format!(
+            "{}: the token is not text (expected visible ASCII characters)",
+            path.display()
+        ))
+    })?;
+    let token = text.trim();
+    if token.is_empty() {
+        return Err(invalid(format!("{} holds no token", path.display())));
+    }
+    if let Some(c) = token.chars().find(|&c| !(c.is_ascii_graphic() || c == ' ')) {
+        return Err(invalid(format!(
+            "{}: the token holds {c:?}; expected visible ASCII characters only",
+            path.display()
+        )));
+    }
+    Ok(token.to_string())
 }
 
 #[cfg(test)]
@@ -106,5 +139,25 @@ mod tests {
         let err = require.call(Request::new(())).unwrap_err();
         assert!(err.message().contains("requires a token"));
         assert!(RequireToken::new(None).call(Request::new(())).is_ok());
+    }
+
+    #[test]
+    fn token_files_are_checked() {
+        let p = std::path::Path::new("tok");
+        assert_eq!(parse_token_file(b"  abc \r\nrest", p).unwrap(), "abc");
+        for (bytes, expect) in [
+            (&b"\n"[..], "holds no token"),
+            (&b"a\x01b\n"[..], "visible ASCII"),
+            (&b"\xff\xfe"[..], "not text"),
+            (&b"caf\xc3\xa9"[..], "visible ASCII"),
+        ] {
+            let e = parse_token_file(bytes, p).unwrap_err().to_string();
+            assert!(e.contains("tok") && e.contains(expect), "{e}");
+        }
+        let huge = vec![b'a'; MAX_TOKEN_FILE_BYTES as usize + 1];
+        assert!(parse_token_file(&huge, p)
+            .unwrap_err()
+            .to_string()
+            .contains("larger than"));
     }
 }

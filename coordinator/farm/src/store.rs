@@ -248,7 +248,7 @@ fn encode_score(score: &Score, step: u64) -> Vec<u8> {
 }
 
 /// The inverse of [`encode_score`]; a record of any other shape is damaged.
-fn decode_score(v: &[u8]) -> Result<(Score, u64), StoreError> {
+pub fn decode_score(v: &[u8]) -> Result<(Score, u64), StoreError> {
     let damaged = || StoreError::Damaged {
         what: "score",
         detail: format!("{} bytes", v.len()),

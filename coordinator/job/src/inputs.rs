@@ -1,11 +1,14 @@
 //! The input files of a reconstruction, held in memory by the name the parameters give them:
 //! read from disk by `reconstruct` and `submit`, sent with a job, stored by the coordinator.
+//! Each file's size is checked against its kind's cap before it is read; the same checks of
+//! its contents run for files read here and files that arrive as bytes with a submission.
 
 use crate::observation::{self, Sidecar};
 use crate::scene_source::LoadedScene;
 use crate::spec::JobSpec;
 use anyhow::{bail, Context, Result};
 use ndarray::Array2;
+use scatterfarm_model::scene::MAX_SCENE_BYTES;
 use scatterfarm_model::{builtin, Scene};
 use sha2::{Digest, Sha256};
 use std::collections::BTreeMap;
@@ -28,7 +31,7 @@ impl Inputs {
         if let Some(scene) = &params.scene {
             let path = base.join(scene);
             if path.is_file() {
-                let bytes = std::fs::read(&path)
+                let bytes = observation::read_capped(&path, MAX_SCENE_BYTES, "scene file")
                     .with_context(|| format!("cannot read scene file {}", path.display()))?;
                 files.insert(scene.clone(), bytes);
             } else if builtin::toml(scene).is_none() {
@@ -43,7 +46,12 @@ impl Inputs {
         for p in [&params.target, &params.calibration].into_iter().flatten() {
             for file in [p.clone(), observation::sidecar_path(p)] {
                 let path = base.join(&file);
-                let bytes = std::fs::read(&path).with_context(|| {
+                let (limit, what) = if file == *p {
+                    (observation::MAX_NPY_FILE_BYTES, "observation file")
+                } else {
+                    (observation::MAX_SIDECAR_BYTES, "observation sidecar")
+                };
+                let bytes = observation::read_capped(&path, limit, what).with_context(|| {
                     if file == *p {
                         format!("cannot read {}", path.display())
                     } else {
@@ -62,6 +70,10 @@ impl Inputs {
     /// The scene `name` names: the file sent under that name, else a built-in scene.
     pub fn scene(&self, name: &str) -> Result<LoadedScene> {
         let text = match self.files.get(name) {
+            Some(bytes) if bytes.len() as u64 > MAX_SCENE_BYTES => bail!(
+                "scene file {name} is {} bytes, more than the {MAX_SCENE_BYTES} a scene file may have",
+                bytes.len()
+            ),
             Some(bytes) => String::from_utf8(bytes.clone())
                 .with_context(|| format!("scene file {name} is not UTF-8 text"))?,
             None => builtin::toml(name).with_context(|| {
@@ -91,6 +103,6 @@ impl Inputs {
             .files
             .get(&key(&side_path))
             .with_context(|| format!("{} was not sent with the job", side_path.display()))?;
-        observation::read_bytes(npy, side, path)
+        Ok(observation::read_bytes(npy, side, path)?)
     }
 }

@@ -19,7 +19,13 @@ pub struct LoadedScene {
 pub fn load(arg: &str) -> Result<LoadedScene> {
     let path = Path::new(arg);
     let text = if path.is_file() {
-        std::fs::read_to_string(path).with_context(|| format!("cannot read scene file {arg}"))?
+        let bytes = crate::observation::read_capped(
+            path,
+            scatterfarm_model::scene::MAX_SCENE_BYTES,
+            "scene file",
+        )
+        .with_context(|| format!("cannot read scene file {arg}"))?;
+        String::from_utf8(bytes).with_context(|| format!("scene file {arg} is not UTF-8 text"))?
     } else if let Some(text) = builtin::toml(arg) {
         text
     } else {

@@ -2,11 +2,20 @@
 //!
 //! Every error names the key, or the row and column, at fault. The material table of a scene
 //! lists the materials its legend uses, in legend order: that order is the default dictionary's.
+//!
+//! What the text controls is capped before anything is sized by it: the text's length
+//! ([`MAX_SCENE_BYTES`]), the grid (4096) and sources (the geometry's limits), and the materials
+//! and legend entries ([`MAX_MATERIALS`]); the map is built row by row, each row checked first.
 
 use crate::geometry::Geometry;
 use crate::material::{builtin_material, Material, MaterialTable, BUILTIN_MATERIALS};
 use std::fmt::Write as _;
 use thiserror::Error;
+
+/// The longest scene text read: a 4096² map of four-byte symbols, with room for its materials.
+pub const MAX_SCENE_BYTES: u64 = 80 << 20;
+/// The most materials a scene may define, and the most legend entries.
+pub const MAX_MATERIALS: usize = 1024;
 
 /// A medium: geometry, materials and the material of every pixel.
 #[derive(Debug, Clone, PartialEq)]
@@ -183,6 +192,15 @@ fn parse_material(name: &str, v: &toml::Value) -> Result<Material, SceneError> {
 impl Scene {
     /// Parses and validates a scene file's text.
     pub fn from_toml(text: &str) -> Result<Scene, SceneError> {
+        if text.len() as u64 > MAX_SCENE_BYTES {
+            return Err(invalid(
+                "(file)",
+                format!(
+                    "{} bytes, more than the {MAX_SCENE_BYTES} a scene file may have",
+                    text.len()
+                ),
+            ));
+        }
         let doc: toml::Table = text
             .parse()
             .map_err(|e: toml::de::Error| SceneError::Toml(e.to_string()))?;
@@ -195,6 +213,15 @@ impl Scene {
             let t = v
                 .as_table()
                 .ok_or_else(|| invalid("materials", "expected a table"))?;
+            if t.len() > MAX_MATERIALS {
+                return Err(invalid(
+                    "materials",
+                    format!(
+                        "{} materials, more than the {MAX_MATERIALS} a scene may define",
+                        t.len()
+                    ),
+                ));
+            }
             for (name, mv) in t {
                 if builtin_material(name).is_some() {
                     return Err(invalid(
@@ -225,6 +252,15 @@ impl Scene {
             .ok_or_else(|| invalid("map.legend", "expected a table of symbol = material"))?;
         if legend.is_empty() {
             return Err(invalid("map.legend", "is empty"));
+        }
+        if legend.len() > MAX_MATERIALS {
+            return Err(invalid(
+                "map.legend",
+                format!(
+                    "{} symbols, more than the {MAX_MATERIALS} a legend may have",
+                    legend.len()
+                ),
+            ));
         }
         let mut table = MaterialTable::default();
         let mut symbols = Vec::new();
@@ -269,7 +305,9 @@ impl Scene {
                 format!("expected {n} rows (grid = {n}), got {}", rows.len()),
             ));
         }
-        let mut assignment = Vec::with_capacity(n * n);
+        // Grown row by row, each row checked first: the size follows what the text holds, not
+        // what `grid` claims.
+        let mut assignment = Vec::new();
         for (r, row) in rows.iter().enumerate() {
             let row = row
                 .as_str()
@@ -281,6 +319,7 @@ impl Scene {
                     format!("expected {n} symbols, got {len}"),
                 ));
             }
+            assignment.reserve(n);
             for (c, ch) in row.chars().enumerate() {
                 let index = symbols.iter().position(|&s| s == ch).ok_or_else(|| {
                     let known: String = symbols.iter().map(|s| format!("'{s}' ")).collect();

@@ -32,6 +32,9 @@ pub enum BenchWhat {
     /// What one coordinator can feed: full-size renders per second ingested and scored, and
     /// its CPU per render, with replay workers (recorded counts) on loopback.
     Farm(farm::FarmBenchArgs),
+    /// Every parser of untrusted input under generated and mutated inputs: panics, accepted
+    /// and refused inputs and peak memory per parser.
+    Fuzz(super::bench_fuzz::FuzzArgs),
 }
 
 #[derive(Debug, Args)]
@@ -282,6 +285,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Engine(a) => run_engine(a),
         BenchWhat::Reconstruct(a) => run_reconstruct(a),
         BenchWhat::Farm(a) => farm::run(a),
+        BenchWhat::Fuzz(a) => super::bench_fuzz::run(a),
     }
 }
 

@@ -3,6 +3,7 @@
 
 pub mod adapters;
 pub mod bench;
+pub mod bench_fuzz;
 pub mod connect;
 pub mod coordinator;
 pub mod demo;
