@@ -416,7 +416,7 @@ fn a_hostile_npy_header_is_refused_not_allocated() {
     assert!(
         err.contains("evil.npy")
             && err.contains("[1073741824, 1073741824]")
-            && err.contains("expected (48, 48)")
+            && err.contains("needs [48, 48]")
             && !err.contains("memory allocation"),
         "{err}"
     );

@@ -61,8 +61,8 @@ pub enum ObservationError {
     #[error("{file}: not a float32 NPY as expected: {problem}")]
     Header { file: String, problem: String },
     #[error(
-        "{file}: shape {shape:?} does not match its sidecar ({positions} positions × \
-         {directions} directions = {sources} sources: expected ({sources}, {sources}))"
+        "{file}: shape {shape:?} does not match its geometry: {positions} positions × \
+         {directions} directions = {sources} sources needs [{sources}, {sources}]"
     )]
     Shape {
         file: String,
@@ -779,7 +779,7 @@ mod tests {
         write(&path, &Array2::zeros((4, 4)), &Sidecar::for_render(&geo, 1)).unwrap();
         let e = read(&path).unwrap_err().to_string();
         assert!(
-            e.contains("does not match its sidecar") && e.contains("obs.npy"),
+            e.contains("does not match its geometry") && e.contains("obs.npy"),
             "{e}"
         );
     }
@@ -827,7 +827,7 @@ mod tests {
         assert!(
             e.contains("evil.npy")
                 && e.contains("[1073741824, 1073741824]")
-                && e.contains("(4, 4)"),
+                && e.contains("needs [4, 4]"),
             "{e}"
         );
         // Matching the sidecar is not enough: the data cap holds too.

@@ -546,6 +546,45 @@ rows = [
     }
 
     #[test]
+    fn sizes_the_text_controls_are_capped() {
+        let mut many = String::from("[materials]\n");
+        for i in 0..=MAX_MATERIALS {
+            many.push_str(&format!("m{i} = {{ sigma_s = 1, sigma_a = 0, g = 0 }}\n"));
+        }
+        let e = err(&many);
+        assert!(e.contains("materials") && e.contains("1024"), "{e}");
+        let legend: Vec<String> = (0..=MAX_MATERIALS)
+            .map(|i| {
+                format!(
+                    "\"{}\" = \"mild\"",
+                    char::from_u32(0x4e00 + i as u32).unwrap()
+                )
+            })
+            .collect();
+        let e = err(&format!(
+            "[map]\nlegend = {{ {} }}\nrows = []\n",
+            legend.join(", ")
+        ));
+        assert!(e.contains("map.legend") && e.contains("1024"), "{e}");
+        let e = err(&with("grid = 4", "grid = 8192"));
+        assert!(e.contains("geometry.grid") && e.contains("4096"), "{e}");
+        let e = err(&with("directions = 3", "directions = 4097"));
+        assert!(e.contains("geometry") && e.contains("65536"), "{e}");
+        // 4096 rows claimed by a grid, none of them valid: refused at the first row.
+        let rows = vec!["\"\""; 4096].join(",");
+        let text = format!(
+            "[geometry]\ngrid = 4096\n[map]\nlegend = {{ \".\" = \"mild\" }}\nrows = [{rows}]\n"
+        );
+        let e = err(&text);
+        assert!(
+            e.contains("row 1") && e.contains("expected 4096 symbols"),
+            "{e}"
+        );
+        let huge = " ".repeat(MAX_SCENE_BYTES as usize + 1);
+        assert!(err(&huge).contains("more than the"));
+    }
+
+    #[test]
     fn opaque_from_the_string_inf() {
         let s = Scene::from_toml(&with("sigma_a = 0.02", "sigma_a = \"inf\"")).unwrap();
         assert!(s.material_at(1, 2).is_opaque());
