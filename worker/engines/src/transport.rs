@@ -126,6 +126,28 @@ impl Medium {
         &self.cells[(iy as usize) * self.geometry.grid as usize + ix as usize]
     }
 
+    /// The distance from `pos` (in the closed square) along `dir` to the square's boundary.
+    fn exit_length(&self, pos: [f64; 2], dir: [f64; 2]) -> f64 {
+        let w = self.geometry.size_mm;
+        let dist = |p: f64, d: f64| {
+            if d > 0.0 {
+                (w - p) / d
+            } else if d < 0.0 {
+                -p / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        dist(pos[0], dir[0]).min(dist(pos[1], dir[1]))
+    }
+
+    /// The tracer's cell index of the pixel at assignment index `p` (row 0 at the top).
+    pub fn cell_of_pixel(&self, p: usize) -> usize {
+        let n = self.geometry.grid as usize;
+        let (row, ix) = (p / n, p % n);
+        (n - 1 - row) * n + ix
+    }
+
     /// The bin of a photon at `pos` (in the closed square) leaving along `dir` without another
     /// collision: the first side of the square the ray meets, or the corner it meets both at.
     fn exit_straight(&self, pos: [f64; 2], dir: [f64; 2]) -> usize {
@@ -214,8 +236,89 @@ fn corner_arc_length(right: bool, up: bool, w: f64) -> f64 {
     }
 }
 
+/// What a traced photon did in each pixel, for differential renders (`docs/model.md`,
+/// "Differential renders"). Cells are the tracer's indices (`iy * N + ix`, `iy` from the
+/// bottom). A plain render uses [`NoTally`], which the compiler removes.
+pub trait Tally {
+    /// Whether the tracer reports to this tally at all.
+    const ACTIVE: bool;
+    /// The photon flew `length` mm inside `cell`.
+    fn length(&mut self, cell: usize, length: f64);
+    /// The photon scattered in `cell`, turning by an angle of cosine `cos`.
+    fn scatter(&mut self, cell: usize, cos: f64);
+}
+
+/// The tally of a plain render: nothing.
+pub struct NoTally;
+
+impl Tally for NoTally {
+    const ACTIVE: bool = false;
+    #[inline(always)]
+    fn length(&mut self, _: usize, _: f64) {}
+    #[inline(always)]
+    fn scatter(&mut self, _: usize, _: f64) {}
+}
+
+/// Splits a straight flight of `length` from `pos` along `dir`, starting in pixel `(ix, iy)`,
+/// into its pieces per pixel (a flight the homogeneous-block shortcut did not walk).
+fn split_flight<T: Tally>(
+    medium: &Medium,
+    pos: [f64; 2],
+    dir: [f64; 2],
+    length: f64,
+    (mut ix, mut iy): (i64, i64),
+    tally: &mut T,
+) {
+    let n = medium.geometry.grid as i64;
+    let h = medium.h;
+    let step_x: i64 = if dir[0] > 0.0 { 1 } else { -1 };
+    let step_y: i64 = if dir[1] > 0.0 { 1 } else { -1 };
+    let next_line = |i: i64, step: i64| (if step > 0 { i + 1 } else { i }) as f64 * h;
+    let mut t_max_x = if dir[0] != 0.0 {
+        ((next_line(ix, step_x) - pos[0]) / dir[0]).max(0.0)
+    } else {
+        f64::INFINITY
+    };
+    let mut t_max_y = if dir[1] != 0.0 {
+        ((next_line(iy, step_y) - pos[1]) / dir[1]).max(0.0)
+    } else {
+        f64::INFINITY
+    };
+    let t_delta_x = h / dir[0].abs();
+    let t_delta_y = h / dir[1].abs();
+    let mut t = 0.0;
+    loop {
+        let t_next = t_max_x.min(t_max_y).min(length);
+        if t_next > t {
+            tally.length((iy * n + ix) as usize, t_next - t);
+        }
+        t = t_next;
+        if t >= length {
+            return;
+        }
+        if t_max_x <= t_max_y {
+            ix = (ix + step_x).clamp(0, n - 1);
+            t_max_x += t_delta_x;
+        } else {
+            iy = (iy + step_y).clamp(0, n - 1);
+            t_max_y += t_delta_y;
+        }
+    }
+}
+
 /// Follows one photon of source `ray` (source index `source`) with stream `rng` to its fate.
 pub fn trace_photon(medium: &Medium, ray: &Ray, rng: &mut PhotonStream) -> Trace {
+    trace_photon_tallied(medium, ray, rng, &mut NoTally)
+}
+
+/// [`trace_photon`], reporting the photon's path to `tally`: the same random numbers, the same
+/// fate.
+pub fn trace_photon_tallied<T: Tally>(
+    medium: &Medium,
+    ray: &Ray,
+    rng: &mut PhotonStream,
+    tally: &mut T,
+) -> Trace {
     let geo = &medium.geometry;
     let n = geo.grid as i64;
     let mut pos = ray.origin;
@@ -244,17 +347,24 @@ pub fn trace_photon(medium: &Medium, ray: &Ray, rng: &mut PhotonStream) -> Trace
             & (next[1] >= block.lo[1])
             & (next[1] <= block.hi[1]);
         let cell = if inside {
+            if T::ACTIVE {
+                split_flight(medium, pos, dir, d, (ix, iy), tally);
+            }
             pos = next;
             ix = ((next[0] * medium.inv_h) as i64).clamp(block.first[0], block.last[0]);
             iy = ((next[1] * medium.inv_h) as i64).clamp(block.first[1], block.last[1]);
             cell
         } else if block.whole {
+            if T::ACTIVE {
+                let length = medium.exit_length(pos, dir);
+                split_flight(medium, pos, dir, length, (ix, iy), tally);
+            }
             return Trace {
                 fate: Fate::Exited(medium.exit_straight(pos, dir)),
                 scatters,
             };
         } else {
-            match march(medium, &mut pos, dir, tau, &mut ix, &mut iy) {
+            match march(medium, &mut pos, dir, tau, &mut ix, &mut iy, tally) {
                 Some(fate) => return Trace { fate, scatters },
                 None => *medium.cell(ix, iy),
             }
@@ -268,21 +378,26 @@ pub fn trace_photon(medium: &Medium, ray: &Ray, rng: &mut PhotonStream) -> Trace
             };
         }
         scatters += 1;
+        let turned = cell.turn.sample(rng.uniform());
+        if T::ACTIVE {
+            tally.scatter((iy * n + ix) as usize, turned.0);
+        }
         // A rotation keeps |dir| = 1 to within a few ulps per event; no renormalization needed.
-        dir = turn(dir, cell.turn.sample(rng.uniform()));
+        dir = turn(dir, turned);
     }
 }
 
 /// One flight by exact grid traversal from `pos` in pixel `(ix, iy)` along `dir`, spending
 /// optical depth `tau`. Returns `None` after a collision (`pos`, `ix`, `iy` updated to it) and
 /// the photon's fate if it left the medium or entered an opaque pixel.
-fn march(
+fn march<T: Tally>(
     medium: &Medium,
     pos: &mut [f64; 2],
     dir: [f64; 2],
     mut tau: f64,
     ix: &mut i64,
     iy: &mut i64,
+    tally: &mut T,
 ) -> Option<Fate> {
     let geo = &medium.geometry;
     let n = geo.grid as i64;
@@ -314,8 +429,14 @@ fn march(
         let spend = cell.sigma_t * (t_next - t);
         if spend >= tau {
             let at = t + tau * cell.inv_sigma_t;
+            if T::ACTIVE {
+                tally.length((*iy * n + *ix) as usize, at - t);
+            }
             *pos = [pos[0] + at * dir[0], pos[1] + at * dir[1]];
             return None;
+        }
+        if T::ACTIVE {
+            tally.length((*iy * n + *ix) as usize, t_next - t);
         }
         tau -= spend;
         t = t_next;

@@ -170,6 +170,8 @@ pub enum EngineError {
     Unavailable(String),
     #[error("device error: {0}")]
     Device(String),
+    #[error("not supported: {0}")]
+    Unsupported(String),
 }
 
 /// A renderer of binned lightfields.
@@ -179,6 +181,24 @@ pub trait Engine: Send + Sync {
 
     /// Renders every item of the batch; outputs are in item order.
     fn render(&self, batch: &RenderBatch<'_>) -> Result<Vec<RenderOutput>, EngineError>;
+
+    /// Renders `item` over photons `photons` of every source and, from the same photons,
+    /// estimates every change of it (`docs/model.md`, "Differential renders"). Engines that do
+    /// not tally per-pixel paths say so with [`EngineError::Unsupported`].
+    fn render_differential(
+        &self,
+        geometry: Geometry,
+        table: &[Material],
+        item: &RenderItem,
+        photons: PhotonRange,
+        changes: &[crate::differential::Change],
+    ) -> Result<crate::differential::DifferentialOutput, EngineError> {
+        let _ = (geometry, table, item, photons, changes);
+        Err(EngineError::Unsupported(format!(
+            "the {} engine does not render differentially",
+            self.fingerprint().engine
+        )))
+    }
 }
 
 /// Checks what every engine must check before it renders.

@@ -6,8 +6,11 @@
 //! - [`material`]: materials, the paper's dictionary and material tables.
 //! - [`scene`]: scene files, parsed and validated; [`builtin`]: the built-in scenes.
 //! - [`engine`]: the [`Engine`] trait, render batches, count matrices and engine fingerprints.
+//! - [`differential`]: differential renders: the changes one render also estimates, and which
+//!   material changes a photon weight covers.
 
 pub mod builtin;
+pub mod differential;
 pub mod engine;
 pub mod geometry;
 pub mod material;
@@ -17,6 +20,7 @@ pub use engine::{
     CountMatrix, Engine, EngineError, EngineFingerprint, PhotonRange, RenderBatch, RenderItem,
     RenderOutput,
 };
+pub use differential::{Change, DifferentialOutput};
 pub use geometry::Geometry;
 pub use material::{Material, MaterialTable};
 pub use scene::{Scene, SceneError};

@@ -1,4 +1,5 @@
-//! The CPU engine: the reference implementation of `docs/model.md`, parallel over sources with rayon.
+//! The CPU engine: the reference implementation of `docs/model.md`, parallel over sources with rayon;
+//! its differential render (per-pixel tallies and photon weights) is in [`differential`].
 //!
 //! Each (assignment, source) pair is traced independently into its own row, so the counts do not
 //! depend on the number of threads or on how the photon range is split.
@@ -9,6 +10,10 @@ use rayon::prelude::*;
 use scatterfarm_model::engine::{
     validate_batch, CountMatrix, Engine, EngineError, EngineFingerprint, RenderBatch, RenderOutput,
 };
+use scatterfarm_model::{Change, DifferentialOutput, Geometry, Material, PhotonRange, RenderItem};
+
+mod differential;
+pub use differential::MAX_CHANGES;
 
 /// Bumped whenever a change to the CPU transport changes its counts.
 pub const CPU_ENGINE_VERSION: &str = "cpu-2";
@@ -103,6 +108,21 @@ impl Engine for CpuEngine {
             Some(pool) => pool.install(|| self.render_all(batch)),
             None => self.render_all(batch),
         })
+    }
+
+    fn render_differential(
+        &self,
+        geometry: Geometry,
+        table: &[Material],
+        item: &RenderItem,
+        photons: PhotonRange,
+        changes: &[Change],
+    ) -> Result<DifferentialOutput, EngineError> {
+        let run = || differential::render_differential(geometry, table, item, photons, changes);
+        match &self.pool {
+            Some(pool) => pool.install(run),
+            None => run(),
+        }
     }
 }
 
