@@ -301,6 +301,7 @@ pub fn decode_score(v: &[u8]) -> Result<(Score, u64), StoreError> {
             std_error: f(2),
             secondary,
             blocks,
+            changes: Vec::new(),
         },
         u64::from_le_bytes(words[1]),
     ))
@@ -336,6 +337,7 @@ mod tests {
                         std_error: 0.75,
                     }),
                     blocks: Vec::new(),
+                    changes: Vec::new(),
                 },
                 4,
             )
@@ -362,6 +364,7 @@ mod tests {
                         std_error: 0.75,
                     }),
                     blocks: Vec::new(),
+                    changes: Vec::new(),
                 },
                 4
             ))
@@ -387,6 +390,7 @@ mod tests {
             },
             Score {
                 blocks: vec![-1.5, -2.0, -0.25],
+                changes: Vec::new(),
                 ..Score::exact(-3.75)
             },
             Score {
@@ -395,6 +399,7 @@ mod tests {
                     std_error: 1.0,
                 }),
                 blocks: vec![-4.0, -5.0],
+                changes: Vec::new(),
                 ..Score::exact(-9.0)
             },
         ];
@@ -408,6 +413,7 @@ mod tests {
         let mut bad = encode_score(
             &Score {
                 blocks: vec![1.0, 2.0],
+                changes: Vec::new(),
                 ..Score::exact(0.0)
             },
             0,

@@ -23,3 +23,4 @@ pub mod report;
 pub mod scene_source;
 pub mod setup;
 pub mod spec;
+pub mod truth_check;

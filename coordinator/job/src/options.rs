@@ -142,6 +142,12 @@ pub mod likelihood {
     pub const REFINE_Z: f64 = 3.0;
     /// The most refinement sweeps.
     pub const REFINE_SWEEPS: u32 = 8;
+    /// How sweeps score their changes.
+    pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
+        scatterfarm_search::refine::Screen::Direct;
+    /// The most changes one differential render estimates, before the plan fits it to the
+    /// geometry (`plan::resolve`: at most 256 MiB of estimates per render).
+    pub const CHANGES_PER_RENDER: u32 = 1024;
 }
 
 /// The search options resolved from a mode and its overrides.
@@ -237,6 +243,8 @@ impl JobSpec {
                     z: self.refine_z.unwrap_or(likelihood::REFINE_Z),
                     max_sweeps: self.refine_sweeps.unwrap_or(likelihood::REFINE_SWEEPS),
                     move_objects: self.refine_moves.unwrap_or(true),
+                    screen: self.refine_screen.unwrap_or(likelihood::REFINE_SCREEN),
+                    changes_per_render: likelihood::CHANGES_PER_RENDER,
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

@@ -299,6 +299,24 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
             }
         })
         .collect();
+    let refinement = s
+        .search
+        .refinement()
+        .map(|r| r.history())
+        .unwrap_or_default()
+        .iter()
+        .map(|h| crate::report::SweepReport {
+            sweep: h.sweep,
+            tried: h.tried,
+            reweighted: h.reweighted,
+            candidates: h.candidates,
+            changed: h.changed,
+            similarity: h.score,
+            pixel_accuracy: (h.map.len() == grid * grid)
+                .then(|| measures(&h.map).map(|m| m.0))
+                .flatten(),
+        })
+        .collect();
     let m = measures(s.assignment);
     let report = Report {
         pixel_accuracy: m.map(|m| m.0),
@@ -320,6 +338,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         reproducible: s.reproducible,
         configuration: s.config.clone(),
         levels,
+        refinement,
     };
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     write_materials(out, s.assignment, grid, table)?;

@@ -80,4 +80,23 @@ pub struct Report {
     pub reproducible: bool,
     pub configuration: Configuration,
     pub levels: Vec<LevelReport>,
+    /// The refinement stage's sweeps, when the search refines.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub refinement: Vec<SweepReport>,
+}
+
+/// One refinement sweep in `report.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SweepReport {
+    pub sweep: u32,
+    /// Changes tried, those scored by a differential render, and those that beat the current
+    /// map by `refine_z` paired standard errors.
+    pub tried: u32,
+    pub reweighted: u32,
+    pub candidates: u32,
+    /// Pixels the confirmation changed (0: none confirmed).
+    pub changed: u32,
+    pub similarity: f64,
+    /// The map's pixel accuracy after the sweep, when the truth is known.
+    pub pixel_accuracy: Option<f64>,
 }

@@ -117,6 +117,9 @@ pub struct JobSpec {
     pub refine_sweeps: Option<u32>,
     /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
     pub refine_moves: Option<bool>,
+    /// How a refinement sweep scores its changes: `direct` (a render of each) or
+    /// `differential` (one differential render of the current map; in process only).
+    pub refine_screen: Option<scatterfarm_search::refine::Screen>,
     /// A label for job listings (job files only, no flag).
     pub name: Option<String>,
     /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
@@ -163,6 +166,7 @@ impl Default for JobSpec {
             refine_z: None,
             refine_sweeps: None,
             refine_moves: None,
+            refine_screen: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,

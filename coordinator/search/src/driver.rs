@@ -9,11 +9,13 @@
 
 use crate::chunks::{render_in_chunks, render_range};
 use crate::likelihood;
-use crate::machine::{Score, Search, Secondary};
+use crate::machine::{ChangeScore, Score, Search, Secondary};
 use crate::similarity::{self, Metric, Target};
 use crate::steps::{Next, Steps};
 use anyhow::{Context, Result};
-use scatterfarm_model::{CountMatrix, Engine, Geometry, Material, RenderItem};
+use scatterfarm_model::{
+    CountMatrix, DifferentialOutput, Engine, Geometry, Material, PhotonRange, RenderItem,
+};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -72,6 +74,7 @@ impl Scoring {
                 std_error,
                 secondary: None,
                 blocks: d.blocks,
+                changes: Vec::new(),
             });
         }
         let epsilon = self.epsilon(photons)?;
@@ -93,7 +96,39 @@ impl Scoring {
             std_error,
             secondary,
             blocks: Vec::new(),
+            changes: Vec::new(),
         })
+    }
+}
+
+impl Scoring {
+    /// The score of a differential render: the rendered map's, with the estimated score of
+    /// every change it reweighted (the likelihood only: paired blocks are what compare them).
+    pub fn score_differential(&self, output: &DifferentialOutput, photons: u32) -> Result<Score> {
+        anyhow::ensure!(
+            self.metric == Metric::Deviance && self.secondary.is_none(),
+            "differential renders are scored by the likelihood (metric deviance, no tiebreak)"
+        );
+        let mut score = self.score(&output.counts, photons)?;
+        let n = u64::from(photons);
+        score.changes = output
+            .deltas
+            .iter()
+            .map(|delta| {
+                delta
+                    .as_ref()
+                    .map(|d| {
+                        likelihood::deviance_reweighted(&self.target, &output.counts, d, n).map(
+                            |dev| ChangeScore {
+                                value: dev.value,
+                                blocks: dev.blocks,
+                            },
+                        )
+                    })
+                    .transpose()
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(score)
     }
 }
 
@@ -155,6 +190,31 @@ pub fn drive(
             Next::Render(groups) => {
                 let table = search.materials();
                 for group in groups {
+                    if !group.changes.is_empty() {
+                        let item = group
+                            .items
+                            .first()
+                            .context("a differential group without its render")?;
+                        let output = render_differential(
+                            engine,
+                            scoring,
+                            &table,
+                            &item.item,
+                            group.photons,
+                            &group.changes,
+                            on_photons,
+                        )?;
+                        used.scatter_events += output.scatter_events;
+                        simulated += u64::from(group.photons) * sources;
+                        steps.complete_differential(
+                            search,
+                            scoring,
+                            group.photons,
+                            item,
+                            &output,
+                        )?;
+                        continue;
+                    }
                     let items: Vec<RenderItem> =
                         group.items.iter().map(|i| i.item.clone()).collect();
                     let n_items = items.len() as u64;
@@ -178,4 +238,40 @@ pub fn drive(
             }
         }
     }
+}
+
+/// Renders `item` differentially over photons `[0, photons)`, in chunks of the scoring's
+/// chunk size (their results add up to one render of the whole range).
+fn render_differential(
+    engine: &dyn Engine,
+    scoring: &Scoring,
+    table: &[Material],
+    item: &RenderItem,
+    photons: u32,
+    changes: &[scatterfarm_model::Change],
+    on_photons: &mut dyn FnMut(u64),
+) -> Result<DifferentialOutput> {
+    let sources = scoring.geometry.sources() as u64;
+    let chunk = scoring.chunk.max(1);
+    let mut total: Option<DifferentialOutput> = None;
+    let mut first = 0u32;
+    while first < photons {
+        let count = chunk.min(photons - first);
+        let part = engine
+            .render_differential(
+                scoring.geometry,
+                table,
+                item,
+                PhotonRange { first, count },
+                changes,
+            )
+            .context("a differential render (refine_screen = \"differential\")")?;
+        match total.as_mut() {
+            Some(t) => t.add(&part)?,
+            None => total = Some(part),
+        }
+        on_photons(u64::from(count) * sources);
+        first += count;
+    }
+    total.context("a differential render of no photons")
 }

@@ -71,19 +71,50 @@ pub fn deviance(
     if photons == 0 || target.photons_per_source == 0 {
         return Err(SimilarityError::NoPhotons);
     }
+    Ok(deviance_of(target, photons, |i| {
+        f64::from(counts.counts[i])
+    }))
+}
+
+/// The deviance of a change estimated by a differential render: its counts are the rendered
+/// map's `counts` plus `delta` (`Σ (w − 1)` per observation; see
+/// `scatterfarm_model::differential`), fractional and never below 0.
+pub fn deviance_reweighted(
+    target: &Target,
+    counts: &CountMatrix,
+    delta: &[f64],
+    photons: u64,
+) -> Result<Deviance, SimilarityError> {
+    if counts.counts.len() != target.values.len() || delta.len() != counts.counts.len() {
+        return Err(SimilarityError::Shape {
+            expected: target.values.len(),
+            got: delta.len().min(counts.counts.len()),
+        });
+    }
+    if photons == 0 || target.photons_per_source == 0 {
+        return Err(SimilarityError::NoPhotons);
+    }
+    Ok(deviance_of(target, photons, |i| {
+        (f64::from(counts.counts[i]) + delta[i]).max(0.0)
+    }))
+}
+
+/// The deviance of render counts `count(i)` over `photons` per source (shapes checked).
+fn deviance_of(target: &Target, photons: u64, count: impl Fn(usize) -> f64) -> Deviance {
     let nt = target.photons_per_source as f64;
     let nc = photons as f64;
-    let b = blocks(counts.counts.len());
+    let n = target.values.len();
+    let b = blocks(n);
     let mut per_block = vec![0.0; b];
-    for (i, (&f, &c)) in target.values.iter().zip(&counts.counts).enumerate() {
+    for (i, &f) in target.values.iter().enumerate() {
         // The target's count: its fraction over its photons (a capture's may be fractional).
         let t = (f64::from(f) * nt).max(0.0);
-        per_block[i % b] -= term(t, nt, f64::from(c), nc);
+        per_block[i % b] -= term(t, nt, count(i), nc);
     }
-    Ok(Deviance {
+    Deviance {
         value: per_block.iter().sum(),
         blocks: per_block,
-    })
+    }
 }
 
 /// The standard error of a score from its blocks' spread (`√B` times their standard deviation):

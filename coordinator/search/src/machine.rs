@@ -24,10 +24,11 @@ mod photons;
 mod random;
 mod ties;
 
-use crate::refine::{BlockScore, RefineConfig, Refinement};
+use crate::refine::{BlockScore, RefineConfig, RefineRequest, Refinement};
 use crate::seeds::{self, Stream};
 use rand_chacha::rand_core::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use scatterfarm_model::Change;
 use scatterfarm_model::{Material, MaterialTable};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -123,6 +124,10 @@ pub struct RenderRequest {
     pub photons: u32,
     /// `grid²` indices into the search's table.
     pub assignment: Vec<u16>,
+    /// A differential render (`docs/model.md`, "Differential renders"): the changes of
+    /// `assignment` whose scores the same photons also estimate. Empty for a plain render.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub changes: Vec<Change>,
 }
 
 /// A render's score and its standard error from the render's own Monte Carlo noise
@@ -138,6 +143,18 @@ pub struct Score {
     /// differences. Empty for the other metrics.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub blocks: Vec<f64>,
+    /// A differential render's estimated scores of its request's changes, in order (`None`:
+    /// the change could not be reweighted). Empty for a plain render.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub changes: Vec<Option<ChangeScore>>,
+}
+
+/// The likelihood score of one change estimated by a differential render: its value and its
+/// blocks, paired with the rendered map's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChangeScore {
+    pub value: f64,
+    pub blocks: Vec<f64>,
 }
 
 impl Score {
@@ -148,6 +165,7 @@ impl Score {
             std_error: 0.0,
             secondary: None,
             blocks: Vec::new(),
+            changes: Vec::new(),
         }
     }
 }
@@ -535,16 +553,31 @@ impl Search {
 
     /// Makes `(assignment, seed, photons)` the pending requests, numbered in order.
     fn emit(&mut self, requests: Vec<(Vec<u16>, u64, u32)>, waiting: Waiting) {
+        let requests = requests
+            .into_iter()
+            .map(|(assignment, seed, photons)| RefineRequest {
+                assignment,
+                seed,
+                photons,
+                changes: Vec::new(),
+            })
+            .collect();
+        self.emit_requests(requests, waiting);
+    }
+
+    /// Makes `requests` pending, numbered in order.
+    fn emit_requests(&mut self, requests: Vec<RefineRequest>, waiting: Waiting) {
         self.pending = requests
             .into_iter()
-            .map(|(assignment, seed, photons)| {
+            .map(|r| {
                 let index = self.next_request;
                 self.next_request += 1;
                 RenderRequest {
                     index,
-                    seed,
-                    photons,
-                    assignment,
+                    seed: r.seed,
+                    photons: r.photons,
+                    assignment: r.assignment,
+                    changes: r.changes,
                 }
             })
             .collect();
@@ -879,12 +912,23 @@ impl Search {
                     Candidates::Dictionary(d) => d.clone(),
                     Candidates::Random { .. } => distinct(&last.assignment),
                 };
+                let physics = self.table.physics();
+                let reweightable = physics
+                    .iter()
+                    .map(|from| {
+                        physics
+                            .iter()
+                            .map(|to| scatterfarm_model::differential::reweightable(from, to))
+                            .collect()
+                    })
+                    .collect();
                 self.refinement = Some(Refinement::new(
                     config,
                     self.config.grid,
                     materials,
                     self.config.seed,
                     last.assignment,
+                    reweightable,
                 ));
                 self.emit_refinement();
                 Ok(())
@@ -923,7 +967,7 @@ impl Search {
             return;
         }
         let requests = r.pending().to_vec();
-        self.emit(requests, Waiting::Refine);
+        self.emit_requests(requests, Waiting::Refine);
     }
 
     /// The refinement's requests came back.
@@ -936,6 +980,7 @@ impl Search {
             .map(|s| BlockScore {
                 value: s.value,
                 blocks: &s.blocks,
+                changes: &s.changes,
             })
             .collect();
         r.submit(&blocks).map_err(SearchError::Refine)?;

@@ -7,16 +7,21 @@
 //! connected region of a material other than the map's most common one) moved by one pixel in
 //! each of the four directions. A change is a candidate when its likelihood beats `M`'s by more
 //! than `z` paired standard errors ([`crate::likelihood::paired`]). The candidates are taken best
-//! first, skipping any that touches a pixel next to one already taken, and applied together.
+//! first, skipping any that touches a pixel next to one already taken (single pixels set to
+//! the same material excepted), and applied together.
 //!
-//! A **confirmation** then renders `M`, the combined map and the single best change on another
-//! fresh seed: the combined map replaces `M` if it beats it by `z` standard errors there, else
-//! the best change alone if it does. A sweep with no candidate ends the stage; so do two
+//! A **confirmation** then renders `M`, the combined map, the better half of the taken changes
+//! and the single best change on another fresh seed: the first of them that beats `M` by `z`
+//! standard errors there replaces it. With differential screening ([`Screen::Differential`])
+//! a sweep scores the changes it can reweight from differential renders of `M` and renders only
+//! the others. A sweep with no candidate ends the stage; so do two
 //! confirmations in a row that confirm nothing, and the sweep limit. Fresh seeds between sweeps
 //! keep the map from fitting one set of photons, and the final map is the last confirmed one.
 
 use crate::likelihood::paired;
+use crate::machine::ChangeScore;
 use crate::seeds::{self, Stream};
+pub use scatterfarm_model::Change;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 
@@ -33,6 +38,52 @@ pub struct RefineConfig {
     pub max_sweeps: u32,
     /// Whether sweeps also move whole objects by one pixel.
     pub move_objects: bool,
+    /// How a sweep scores its changes: a direct render of each, or one differential render of
+    /// the current map that estimates them all from its photons (changes it cannot reweight
+    /// are rendered directly).
+    #[serde(default)]
+    pub screen: Screen,
+    /// The most changes one differential render estimates (its memory is this many count
+    /// matrices).
+    #[serde(default = "default_changes_per_render")]
+    pub changes_per_render: u32,
+}
+
+fn default_changes_per_render() -> u32 {
+    1024
+}
+
+/// How a refinement sweep scores its changes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Screen {
+    /// A render of every changed map.
+    #[default]
+    Direct,
+    /// One differential render of the current map (`docs/model.md`, "Differential renders").
+    Differential,
+}
+
+impl Screen {
+    pub const ALL: [Screen; 2] = [Screen::Direct, Screen::Differential];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Screen::Direct => "direct",
+            Screen::Differential => "differential",
+        }
+    }
+}
+
+/// One render a refinement step needs: the assignment, seed and photons per source, and for a
+/// differential render the changes it also estimates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RefineRequest {
+    pub assignment: Vec<u16>,
+    pub seed: u64,
+    pub photons: u32,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub changes: Vec<Change>,
 }
 
 impl RefineConfig {
@@ -47,6 +98,9 @@ impl RefineConfig {
         if self.max_sweeps == 0 {
             return Some("refinement needs at least one sweep".into());
         }
+        if self.changes_per_render == 0 {
+            return Some("a differential render needs room for at least one change".into());
+        }
         None
     }
 }
@@ -57,22 +111,30 @@ impl RefineConfig {
 pub struct BlockScore<'a> {
     pub value: f64,
     pub blocks: &'a [f64],
-}
-
-/// One change of the current map: the pixels it sets and their new materials.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Change {
-    pub pixels: Vec<(u32, u16)>,
+    /// A differential render's estimates of its changes.
+    pub changes: &'a [Option<ChangeScore>],
 }
 
 /// What the pending requests are for.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 enum Waiting {
-    /// `M` (first) and then one render per change, in order.
-    Sweep { changes: Vec<Change> },
+    /// `M` first, then one render per change, in order; with differential screening `M`'s
+    /// first renders are differential ones, each estimating the changes listed for it in
+    /// `reweighted`, and the direct renders are of the other changes, in order.
+    Sweep {
+        changes: Vec<Change>,
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        reweighted: Vec<Vec<usize>>,
+    },
     /// `M` (first) and the options in order: the combined map, then the best change alone
     /// (when it differs).
-    Confirm { options: Vec<Vec<u16>> },
+    /// With `reweighted`, the options are estimated by one differential render of `M` (the
+    /// only request) and the best of those beating `M` wins, not the first.
+    Confirm {
+        options: Vec<Vec<u16>>,
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        reweighted: bool,
+    },
 }
 
 /// One finished sweep, for reports.
@@ -86,6 +148,12 @@ pub struct SweepRecord {
     pub changed: u32,
     /// The confirmed map's score on the confirmation seed.
     pub score: f64,
+    /// Changes scored by a differential render rather than a render of their own.
+    #[serde(default)]
+    pub reweighted: u32,
+    /// The current map after the sweep.
+    #[serde(default)]
+    pub map: Vec<u16>,
 }
 
 /// The refinement state machine.
@@ -97,13 +165,17 @@ pub struct Refinement {
     materials: Vec<u16>,
     job_seed: u64,
     current: Vec<u16>,
+    /// Whether a pixel can go from material `i` to `j` by reweighting (indexed by table
+    /// index; empty: by no change).
+    #[serde(default)]
+    reweightable: Vec<Vec<bool>>,
     /// The score of the current map on the last seed it was rendered on.
     current_score: Option<f64>,
     sweep: u32,
     stalls: u32,
     waiting: Option<Waiting>,
-    /// The pending requests: assignment, seed, photons per source.
-    pending: Vec<(Vec<u16>, u64, u32)>,
+    /// The pending requests.
+    pending: Vec<RefineRequest>,
     history: Vec<SweepRecord>,
 }
 
@@ -115,6 +187,7 @@ impl Refinement {
         materials: Vec<u16>,
         job_seed: u64,
         start: Vec<u16>,
+        reweightable: Vec<Vec<bool>>,
     ) -> Refinement {
         let mut r = Refinement {
             config,
@@ -122,6 +195,7 @@ impl Refinement {
             materials,
             job_seed,
             current: start,
+            reweightable,
             current_score: None,
             sweep: 0,
             stalls: 0,
@@ -134,7 +208,7 @@ impl Refinement {
     }
 
     /// The requests whose scores [`Refinement::submit`] expects, in order.
-    pub fn pending(&self) -> &[(Vec<u16>, u64, u32)] {
+    pub fn pending(&self) -> &[RefineRequest] {
         &self.pending
     }
 
@@ -186,10 +260,54 @@ impl Refinement {
         }
         let seed = seeds::derive(self.job_seed, Stream::RefineSweep(self.sweep));
         let photons = self.config.photons;
-        let mut pending = vec![(self.current.clone(), seed, photons)];
-        pending.extend(changes.iter().map(|c| (self.apply(c), seed, photons)));
+        let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
+            assignment,
+            seed,
+            photons,
+            changes,
+        };
+        let (reweighted, direct): (Vec<usize>, Vec<usize>) = match self.config.screen {
+            Screen::Direct => (Vec::new(), (0..changes.len()).collect()),
+            Screen::Differential => {
+                (0..changes.len()).partition(|&k| self.can_reweight(&changes[k]))
+            }
+        };
+        let reweighted: Vec<Vec<usize>> = reweighted
+            .chunks(self.config.changes_per_render.max(1) as usize)
+            .map(<[usize]>::to_vec)
+            .collect();
+        let mut pending: Vec<RefineRequest> = reweighted
+            .iter()
+            .map(|ks| {
+                let chosen = ks.iter().map(|&k| changes[k].clone()).collect();
+                request(self.current.clone(), chosen)
+            })
+            .collect();
+        if pending.is_empty() {
+            pending.push(request(self.current.clone(), Vec::new()));
+        }
+        pending.extend(
+            direct
+                .iter()
+                .map(|&k| request(self.apply(&changes[k]), Vec::new())),
+        );
         self.pending = pending;
-        self.waiting = Some(Waiting::Sweep { changes });
+        self.waiting = Some(Waiting::Sweep {
+            changes,
+            reweighted,
+        });
+    }
+
+    /// Whether every pixel of `change` can be reweighted from the current map.
+    fn can_reweight(&self, change: &Change) -> bool {
+        change.pixels.iter().all(|&(p, d)| {
+            let from = self.current[p as usize];
+            self.reweightable
+                .get(usize::from(from))
+                .and_then(|row| row.get(usize::from(d)))
+                .copied()
+                .unwrap_or(false)
+        })
     }
 
     /// `M` with `change` applied.
@@ -304,8 +422,15 @@ impl Refinement {
         moves
     }
 
-    /// Whether two changes touch pixels within one pixel of each other.
+    /// Whether two changes may not be taken together: they touch pixels within one pixel of
+    /// each other, unless both set one pixel each, to the same material, and different pixels
+    /// (neighbours growing or shrinking one object together).
     fn near(&self, a: &Change, b: &Change) -> bool {
+        if let ([(p, m)], [(q, d)]) = (&a.pixels[..], &b.pixels[..]) {
+            if m == d && p != q {
+                return false;
+            }
+        }
         let n = self.grid as i64;
         a.pixels.iter().any(|&(p, _)| {
             b.pixels.iter().any(|&(q, _)| {
@@ -343,20 +468,58 @@ impl Refinement {
         };
         self.pending.clear();
         match waiting {
-            Waiting::Sweep { changes } => self.sweep_scored(changes, scores),
-            Waiting::Confirm { options } => self.confirm_scored(options, scores),
+            Waiting::Sweep {
+                changes,
+                reweighted,
+            } => self.sweep_scored(changes, reweighted, scores),
+            Waiting::Confirm {
+                options,
+                reweighted,
+            } => self.confirm_scored(options, reweighted, scores),
         }
         Ok(())
     }
 
-    fn sweep_scored(&mut self, changes: Vec<Change>, scores: &[BlockScore]) {
+    fn sweep_scored(
+        &mut self,
+        changes: Vec<Change>,
+        reweighted: Vec<Vec<usize>>,
+        scores: &[BlockScore],
+    ) {
         let reference = scores[0];
         self.current_score = Some(reference.value);
-        let mut ranked: Vec<(f64, usize)> = changes
+        // Each change's score: from its differential render, or its own direct render.
+        let mut of_change: Vec<Option<BlockScore>> = vec![None; changes.len()];
+        for (r, ks) in reweighted.iter().enumerate() {
+            for (j, &k) in ks.iter().enumerate() {
+                of_change[k] =
+                    scores[r]
+                        .changes
+                        .get(j)
+                        .and_then(Option::as_ref)
+                        .map(|c| BlockScore {
+                            value: c.value,
+                            blocks: &c.blocks,
+                            changes: &[],
+                        });
+            }
+        }
+        let first_direct = reweighted.len().max(1);
+        let mut listed = vec![false; changes.len()];
+        for ks in &reweighted {
+            for &k in ks {
+                listed[k] = true;
+            }
+        }
+        let direct = (0..changes.len()).filter(|&k| !listed[k]);
+        for (i, k) in direct.enumerate() {
+            of_change[k] = scores.get(first_direct + i).copied();
+        }
+        let mut ranked: Vec<(f64, usize)> = of_change
             .iter()
             .enumerate()
-            .filter_map(|(k, _)| {
-                let z = self.z_of(scores[k + 1], reference)?;
+            .filter_map(|(k, s)| {
+                let z = self.z_of((*s)?, reference)?;
                 (z > self.config.z).then_some((z, k))
             })
             .collect();
@@ -377,6 +540,8 @@ impl Refinement {
                 candidates,
                 changed: 0,
                 score: reference.value,
+                reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
+                map: self.current.clone(),
             });
             self.waiting = None;
             return;
@@ -387,32 +552,117 @@ impl Refinement {
                 combined[p as usize] = m;
             }
         }
-        let best = self.apply(taken[0]);
-        let mut options = vec![combined];
-        if best != options[0] {
-            options.push(best);
-        }
         let seed = seeds::derive(self.job_seed, Stream::RefineConfirm(self.sweep));
         let photons = self.config.confirm_photons;
-        let mut pending = vec![(self.current.clone(), seed, photons)];
-        pending.extend(options.iter().map(|o| (o.clone(), seed, photons)));
-        self.pending = pending;
+        let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
+            assignment,
+            seed,
+            photons,
+            changes,
+        };
+        // Differential confirmation: the best 1, 2, 4, … of the taken changes together, each
+        // estimated on the confirmation seed; the best of them beating `M` wins.
+        let prefixes: Vec<Change> = {
+            let mut sizes: Vec<usize> = std::iter::successors(Some(1usize), |k| Some(k * 2))
+                .take_while(|&k| k < taken.len())
+                .collect();
+            sizes.push(taken.len());
+            sizes
+                .into_iter()
+                .map(|k| {
+                    let mut pixels: Vec<(u32, u16)> = taken[..k]
+                        .iter()
+                        .flat_map(|c| c.pixels.iter().copied())
+                        .collect();
+                    pixels.sort_unstable();
+                    pixels.dedup_by_key(|p| p.0);
+                    Change { pixels }
+                })
+                .collect()
+        };
+        let differential = self.config.screen == Screen::Differential
+            && prefixes.iter().all(|c| self.can_reweight(c));
+        let options: Vec<Vec<u16>> = if differential {
+            prefixes.iter().map(|c| self.apply(c)).collect()
+        } else {
+            // The confirmation tries all of them, the better half, then the best alone: the
+            // first that beats the current map wins.
+            let mut options = vec![combined];
+            if taken.len() >= 4 {
+                let mut half = self.current.clone();
+                for c in &taken[..taken.len() / 2] {
+                    for &(p, m) in &c.pixels {
+                        half[p as usize] = m;
+                    }
+                }
+                options.push(half);
+            }
+            let best = self.apply(taken[0]);
+            if !options.contains(&best) {
+                options.push(best);
+            }
+            options
+        };
+        self.pending = if differential {
+            vec![request(self.current.clone(), prefixes)]
+        } else {
+            let mut pending = vec![request(self.current.clone(), Vec::new())];
+            pending.extend(options.iter().map(|o| request(o.clone(), Vec::new())));
+            pending
+        };
         self.history.push(SweepRecord {
             sweep: self.sweep,
             tried: changes.len() as u32,
             candidates,
             changed: 0,
             score: reference.value,
+            reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
+            map: self.current.clone(),
         });
-        self.waiting = Some(Waiting::Confirm { options });
+        self.waiting = Some(Waiting::Confirm {
+            options,
+            reweighted: differential,
+        });
     }
 
-    fn confirm_scored(&mut self, options: Vec<Vec<u16>>, scores: &[BlockScore]) {
+    fn confirm_scored(&mut self, options: Vec<Vec<u16>>, reweighted: bool, scores: &[BlockScore]) {
         let reference = scores[0];
-        let winner = options.iter().enumerate().find_map(|(k, _)| {
-            let z = self.z_of(scores[k + 1], reference)?;
-            (z > self.config.z).then_some(k)
-        });
+        let of_option: Vec<Option<BlockScore>> = if reweighted {
+            (0..options.len())
+                .map(|k| {
+                    reference
+                        .changes
+                        .get(k)
+                        .and_then(Option::as_ref)
+                        .map(|c| BlockScore {
+                            value: c.value,
+                            blocks: &c.blocks,
+                            changes: &[],
+                        })
+                })
+                .collect()
+        } else {
+            (0..options.len())
+                .map(|k| scores.get(k + 1).copied())
+                .collect()
+        };
+        let beating = |k: usize| -> Option<f64> {
+            let s = of_option[k]?;
+            let z = self.z_of(s, reference)?;
+            (z > self.config.z).then_some(s.value)
+        };
+        let winner = if reweighted {
+            // The best estimate among those beating `M` (ties: the smaller option).
+            (0..options.len())
+                .filter_map(|k| beating(k).map(|v| (v, k)))
+                .fold(None::<(f64, usize)>, |best, (v, k)| match best {
+                    Some((bv, _)) if bv >= v => best,
+                    _ => Some((v, k)),
+                })
+                .map(|(_, k)| k)
+        } else {
+            (0..options.len()).find(|&k| beating(k).is_some())
+        };
         match winner {
             Some(k) => {
                 let changed = self
@@ -421,12 +671,14 @@ impl Refinement {
                     .zip(&options[k])
                     .filter(|(a, b)| a != b)
                     .count() as u32;
+                let value = of_option[k].map_or(reference.value, |s| s.value);
                 self.current = options[k].clone();
-                self.current_score = Some(scores[k + 1].value);
+                self.current_score = Some(value);
                 self.stalls = 0;
                 if let Some(h) = self.history.last_mut() {
                     h.changed = changed;
-                    h.score = scores[k + 1].value;
+                    h.score = value;
+                    h.map = self.current.clone();
                 }
             }
             None => {
@@ -457,6 +709,8 @@ mod tests {
             z: 2.0,
             max_sweeps: 5,
             move_objects: true,
+            screen: Screen::Direct,
+            changes_per_render: 1024,
         }
     }
 
@@ -471,19 +725,46 @@ mod tests {
     }
 
     fn run(truth: &[u16], start: Vec<u16>, materials: Vec<u16>) -> Refinement {
-        let mut r = Refinement::new(config(), 4, materials, 1, start);
+        run_with(config(), truth, start, materials, Vec::new())
+    }
+
+    /// Runs a refinement against [`score_of`]; a differential request's changes are scored as
+    /// a direct render of each would be.
+    fn run_with(
+        config: RefineConfig,
+        truth: &[u16],
+        start: Vec<u16>,
+        materials: Vec<u16>,
+        reweightable: Vec<Vec<bool>>,
+    ) -> Refinement {
+        let mut r = Refinement::new(config, 4, materials, 1, start, reweightable);
         let mut steps = 0;
         while !r.is_finished() {
-            let scored: Vec<(f64, Vec<f64>)> = r
+            let scored: Vec<((f64, Vec<f64>), Vec<Option<ChangeScore>>)> = r
                 .pending()
                 .iter()
-                .map(|(a, s, _)| score_of(truth, a, *s))
+                .map(|q| {
+                    let changes = q
+                        .changes
+                        .iter()
+                        .map(|c| {
+                            let mut a = q.assignment.clone();
+                            for &(p, m) in &c.pixels {
+                                a[p as usize] = m;
+                            }
+                            let (value, blocks) = score_of(truth, &a, q.seed);
+                            Some(ChangeScore { value, blocks })
+                        })
+                        .collect();
+                    (score_of(truth, &q.assignment, q.seed), changes)
+                })
                 .collect();
             let scores: Vec<BlockScore> = scored
                 .iter()
-                .map(|(v, b)| BlockScore {
+                .map(|((v, b), c)| BlockScore {
                     value: *v,
                     blocks: b,
+                    changes: c,
                 })
                 .collect();
             r.submit(&scores).unwrap();
@@ -518,7 +799,7 @@ mod tests {
         for p in [5, 6, 9, 10] {
             start[p] = 1;
         }
-        let r = Refinement::new(config(), 4, vec![0, 1], 1, start.clone());
+        let r = Refinement::new(config(), 4, vec![0, 1], 1, start.clone(), Vec::new());
         let right = r
             .object_moves()
             .into_iter()
@@ -529,11 +810,11 @@ mod tests {
 
     #[test]
     fn requests_share_a_seed_within_a_sweep_and_sweeps_differ() {
-        let r = Refinement::new(config(), 4, vec![0, 1], 1, vec![0; 16]);
-        let seeds: BTreeSet<u64> = r.pending().iter().map(|p| p.1).collect();
+        let r = Refinement::new(config(), 4, vec![0, 1], 1, vec![0; 16], Vec::new());
+        let seeds: BTreeSet<u64> = r.pending().iter().map(|p| p.seed).collect();
         assert_eq!(seeds.len(), 1);
         assert_eq!(r.pending().len(), 17);
-        assert!(r.pending().iter().all(|p| p.2 == 100));
+        assert!(r.pending().iter().all(|p| p.photons == 100));
         assert!(config().problem().is_none());
         assert!(RefineConfig {
             z: f64::NAN,
@@ -541,5 +822,49 @@ mod tests {
         }
         .problem()
         .is_some());
+    }
+
+    /// Differential screening: the changes the reweighting covers ride on renders of the
+    /// current map (in chunks), the others are rendered directly, and the result is the one
+    /// direct screening finds.
+    #[test]
+    fn differential_screening_finds_what_direct_screening_does() {
+        let mut truth = vec![0u16; 16];
+        truth[5] = 1;
+        truth[10] = 2;
+        // 0 → anything and 1 → 0 reweight; 2 is like an opaque material: nothing leaves it.
+        let reweightable = vec![
+            vec![true, true, true],
+            vec![true, true, false],
+            vec![false, false, true],
+        ];
+        let cfg = RefineConfig {
+            screen: Screen::Differential,
+            changes_per_render: 10,
+            ..config()
+        };
+        let first = Refinement::new(
+            cfg.clone(),
+            4,
+            vec![0, 1, 2],
+            1,
+            vec![0; 16],
+            reweightable.clone(),
+        );
+        // 32 single-pixel changes, all from material 0: four differential renders of M.
+        assert_eq!(first.pending().len(), 4);
+        assert!(first.pending().iter().all(|q| q.assignment == vec![0; 16]));
+        assert_eq!(
+            first
+                .pending()
+                .iter()
+                .map(|q| q.changes.len())
+                .sum::<usize>(),
+            32
+        );
+        let r = run_with(cfg, &truth, vec![0; 16], vec![0, 1, 2], reweightable);
+        assert_eq!(r.current().0, &truth[..]);
+        let direct = run(&truth, vec![0; 16], vec![0, 1, 2]);
+        assert_eq!(r.current().0, direct.current().0);
     }
 }

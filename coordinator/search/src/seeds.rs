@@ -27,6 +27,9 @@ pub enum Stream {
     RefineSweep(u32),
     /// The confirmation renders after refinement sweep `k`.
     RefineConfirm(u32),
+    /// The quality bench's check of a result against the truth, on photons no search render
+    /// used.
+    TruthCheck,
 }
 
 impl Stream {
@@ -41,6 +44,7 @@ impl Stream {
             Stream::Rescore(l) => ("rescore", u64::from(*l)),
             Stream::RefineSweep(k) => ("refine-sweep", u64::from(*k)),
             Stream::RefineConfirm(k) => ("refine-confirm", u64::from(*k)),
+            Stream::TruthCheck => ("truth-check", 0),
         }
     }
 }

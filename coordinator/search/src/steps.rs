@@ -18,7 +18,7 @@ use crate::identity::{identity, Identity};
 use crate::machine::{Score, Search};
 use crate::prefixes::{Prefixes, DEFAULT_BYTES};
 use anyhow::{Context, Result};
-use scatterfarm_model::{CountMatrix, Geometry, RenderItem};
+use scatterfarm_model::{Change, CountMatrix, DifferentialOutput, Geometry, RenderItem};
 use std::collections::{BTreeMap, HashMap};
 
 /// One render of a group: its identity and what the engine renders.
@@ -40,6 +40,9 @@ pub struct StepGroup {
     pub photons: u32,
     /// The counts of photons `[0, start)` of every item, in order (empty when `start` is 0).
     pub prefixes: Vec<CountMatrix>,
+    /// A differential render (one item, from photon 0): the changes it also estimates
+    /// ([`Steps::complete_differential`] scores it). Empty for plain renders.
+    pub changes: Vec<Change>,
 }
 
 /// What [`Steps::next`] did.
@@ -126,15 +129,20 @@ impl Steps {
             .pending()
             .iter()
             .map(|r| {
+                let plain = identity(
+                    &r.assignment,
+                    &table,
+                    self.geometry,
+                    r.seed,
+                    r.photons,
+                    &self.fingerprint,
+                );
                 let item = GroupItem {
-                    identity: identity(
-                        &r.assignment,
-                        &table,
-                        self.geometry,
-                        r.seed,
-                        r.photons,
-                        &self.fingerprint,
-                    ),
+                    identity: if r.changes.is_empty() {
+                        plain
+                    } else {
+                        differential_identity(&plain, &r.changes)
+                    },
                     item: RenderItem {
                         assignment: r.assignment.clone(),
                         seed: r.seed,
@@ -143,10 +151,27 @@ impl Steps {
                 (item, r.photons)
             })
             .collect();
-        // The unscored renders, grouped by the photon range they need.
+        // The unscored renders, grouped by the photon range they need; each differential
+        // render a group of its own.
         let mut missing: BTreeMap<(u32, u32), Vec<GroupItem>> = BTreeMap::new();
-        for (p, photons) in &pending {
+        let mut differential: Vec<StepGroup> = Vec::new();
+        for ((p, photons), request) in pending.iter().zip(search.pending()) {
             if self.scores.contains_key(&p.identity) {
+                continue;
+            }
+            if !request.changes.is_empty() {
+                if !differential
+                    .iter()
+                    .any(|g| g.items[0].identity == p.identity)
+                {
+                    differential.push(StepGroup {
+                        items: vec![p.clone()],
+                        start: 0,
+                        photons: *photons,
+                        prefixes: Vec::new(),
+                        changes: request.changes.clone(),
+                    });
+                }
                 continue;
             }
             let key = (p.item.assignment.clone(), p.item.seed);
@@ -156,8 +181,8 @@ impl Steps {
                 items.push(p.clone());
             }
         }
-        if !missing.is_empty() {
-            let groups = missing
+        if !missing.is_empty() || !differential.is_empty() {
+            let mut groups: Vec<StepGroup> = missing
                 .into_iter()
                 .map(|((start, photons), items)| {
                     let prefixes = if start == 0 {
@@ -183,9 +208,11 @@ impl Steps {
                         start,
                         photons,
                         prefixes,
+                        changes: Vec::new(),
                     }
                 })
                 .collect();
+            groups.extend(differential);
             return Ok(Next::Render(groups));
         }
         let scores: Vec<Score> = pending
@@ -265,4 +292,51 @@ impl Steps {
         }
         Ok(new)
     }
+
+    /// Scores a differential group's render (photons `[0, photons)` of its one item) and
+    /// keeps the score; returns it. The rendered map's counts are those of a plain render of
+    /// it, so its score is kept under the plain identity too.
+    pub fn complete_differential(
+        &mut self,
+        search: &Search,
+        scoring: &Scoring,
+        photons: u32,
+        item: &GroupItem,
+        output: &DifferentialOutput,
+    ) -> Result<Vec<NewScore>> {
+        let step = search.pending().first().map(|r| r.index).unwrap_or(0);
+        let score = scoring
+            .score_differential(output, photons)
+            .with_context(|| {
+                format!("scoring a differential render of {photons} photons per source")
+            })?;
+        let plain = self.identity_of(search, &item.item.assignment, item.item.seed, photons);
+        let mut base = score.clone();
+        base.changes.clear();
+        let mut new = Vec::with_capacity(2);
+        if !self.scores.contains_key(&plain) {
+            self.scores.insert(plain, (base.clone(), step));
+            new.push((plain, base, step));
+        }
+        self.scores.insert(item.identity, (score.clone(), step));
+        new.push((item.identity, score, step));
+        Ok(new)
+    }
+}
+
+/// The identity of a differential render: the plain render's and the changes it estimates.
+pub fn differential_identity(plain: &Identity, changes: &[Change]) -> Identity {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    h.update(b"scatterfarm-differential/1\0");
+    h.update(plain);
+    h.update((changes.len() as u64).to_le_bytes());
+    for c in changes {
+        h.update((c.pixels.len() as u64).to_le_bytes());
+        for &(p, m) in &c.pixels {
+            h.update(p.to_le_bytes());
+            h.update(m.to_le_bytes());
+        }
+    }
+    h.finalize().into()
 }

@@ -45,7 +45,9 @@ pub fn change_is_reweightable(table: &[Material], assignment: &[u16], change: &C
         let (Some(&m), Some(to)) = (assignment.get(p as usize), table.get(usize::from(d))) else {
             return false;
         };
-        table.get(usize::from(m)).is_some_and(|from| reweightable(from, to))
+        table
+            .get(usize::from(m))
+            .is_some_and(|from| reweightable(from, to))
     })
 }
 

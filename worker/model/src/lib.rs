@@ -16,11 +16,11 @@ pub mod geometry;
 pub mod material;
 pub mod scene;
 
+pub use differential::{Change, DifferentialOutput};
 pub use engine::{
     CountMatrix, Engine, EngineError, EngineFingerprint, PhotonRange, RenderBatch, RenderItem,
     RenderOutput,
 };
-pub use differential::{Change, DifferentialOutput};
 pub use geometry::Geometry;
 pub use material::{Material, MaterialTable};
 pub use scene::{Scene, SceneError};

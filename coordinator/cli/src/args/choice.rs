@@ -31,6 +31,15 @@ impl Named for SearchMode {
     }
 }
 
+impl Named for scatterfarm_search::refine::Screen {
+    fn all() -> &'static [Self] {
+        &scatterfarm_search::refine::Screen::ALL
+    }
+    fn name(self) -> &'static str {
+        scatterfarm_search::refine::Screen::name(self)
+    }
+}
+
 impl Named for TiebreakMetric {
     fn all() -> &'static [Self] {
         &TiebreakMetric::ALL

@@ -139,6 +139,11 @@ pub struct JobArgs {
     /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub refine_moves: Option<bool>,
+    /// How a refinement sweep scores its changes: `direct` renders each changed map;
+    /// `differential` estimates them all from one render of the current map (CPU engine, in
+    /// process), rendering directly only the changes it cannot reweight.
+    #[arg(long, value_name = "HOW", value_parser = choice::<scatterfarm_search::refine::Screen>())]
+    pub refine_screen: Option<scatterfarm_search::refine::Screen>,
 }
 
 impl JobArgs {
@@ -179,6 +184,7 @@ impl JobArgs {
             refine_z: self.refine_z,
             refine_sweeps: self.refine_sweeps,
             refine_moves: self.refine_moves,
+            refine_screen: self.refine_screen,
             ..JobSpec::default()
         }
     }

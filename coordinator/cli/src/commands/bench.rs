@@ -83,6 +83,10 @@ pub struct ReconstructBenchArgs {
         value_parser = crate::args::choice::choice::<scatterfarm_job::options::SearchMode>()
     )]
     pub search: scatterfarm_job::options::SearchMode,
+    /// Photons per source of the truth check after each run (the truth and the map found on
+    /// common fresh photons: information or search?); 0 skips it.
+    #[arg(long, default_value_t = 102_400)]
+    pub check_photons: u32,
     /// Any other job-file key, as KEY=VALUE in TOML (e.g. race_share=0.5,
     /// common_random_numbers=false, level_photons=[400,200]); repeatable.
     #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -165,6 +169,12 @@ pub struct QualityRow {
     /// Photons engines ran: search, target and calibration renders.
     pub photons_simulated: u64,
     pub wall_seconds: f64,
+    /// The truth's likelihood score minus the map's, rendered on common fresh photons
+    /// (`--check-photons`), and that margin in paired standard errors: a clearly positive
+    /// margin on a map that misses pixels means the search stopped short of what the target
+    /// tells; a margin near 0 means the target cannot tell the two apart.
+    pub truth_margin: Option<f64>,
+    pub truth_margin_z: Option<f64>,
 }
 
 /// A scene's rows averaged over the seeds.
@@ -309,7 +319,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
     let mut rows = Vec::new();
     eprintln!(
-        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9}",
+        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9} {:>8}",
         "scene",
         "seed",
         "accuracy",
@@ -318,7 +328,8 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         "similarity",
         "renders",
         "photons",
-        "seconds"
+        "seconds",
+        "truth z"
     );
     let mut config = None;
     for &seed in &args.seeds {
@@ -330,8 +341,14 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 .join(seed.to_string())
                 .join(scene);
             let params = args.params(scene, seed)?;
-            let report = reconstruct::run_in_process(&params, engine.as_ref(), &out, true)
-                .with_context(|| format!("{scene}, seed {seed}"))?;
+            let (report, check) = reconstruct::run_checked(
+                &params,
+                engine.as_ref(),
+                &out,
+                true,
+                (args.check_photons > 0).then_some(args.check_photons),
+            )
+            .with_context(|| format!("{scene}, seed {seed}"))?;
             let row = QualityRow {
                 scene: scene.clone(),
                 seed,
@@ -345,9 +362,11 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 photons: report.photons,
                 photons_simulated: report.photons_simulated,
                 wall_seconds: report.wall_seconds,
+                truth_margin: check.map(|c| c.margin),
+                truth_margin_z: check.map(|c| c.z()),
             };
             eprintln!(
-                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1}",
+                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1}",
                 row.scene,
                 seed,
                 row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
@@ -356,7 +375,8 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 row.similarity,
                 row.renders,
                 row.photons,
-                row.wall_seconds
+                row.wall_seconds,
+                row.truth_margin_z.unwrap_or(f64::NAN)
             );
             config.get_or_insert(report.configuration);
             rows.push(row);

@@ -46,6 +46,18 @@ pub fn run_in_process(
     out: &Path,
     quiet: bool,
 ) -> Result<Report> {
+    Ok(run_checked(params, engine, out, quiet, None)?.0)
+}
+
+/// [`run_in_process`], then (with `check_photons`) the truth against the map found on fresh
+/// photons (`scatterfarm_job::truth_check`): information or search.
+pub fn run_checked(
+    params: &JobSpec,
+    engine: &dyn Engine,
+    out: &Path,
+    quiet: bool,
+    check_photons: Option<u32>,
+) -> Result<(Report, Option<scatterfarm_job::truth_check::TruthCheck>)> {
     let inputs = Inputs::gather(params, Path::new("."))?;
     let plan = Plan::resolve(params, &inputs)?;
     let scoring = scatterfarm_job::setup::prepare(&plan, engine)?;
@@ -85,7 +97,7 @@ pub fn run_in_process(
         .result()
         .context("the search ended without a result")?
         .clone();
-    outcome::write_outputs(
+    let report = outcome::write_outputs(
         out,
         &Summary {
             config: &plan.config,
@@ -100,7 +112,18 @@ pub fn run_in_process(
             engine: engine.fingerprint().key(),
             reproducible: true,
         },
-    )
+    )?;
+    let check = match check_photons {
+        Some(photons) => scatterfarm_job::truth_check::check(
+            &plan,
+            &scoring,
+            engine,
+            &result.assignment,
+            photons,
+        )?,
+        None => None,
+    };
+    Ok((report, check))
 }
 
 pub fn run(args: ReconstructArgs) -> Result<()> {

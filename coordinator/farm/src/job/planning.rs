@@ -67,6 +67,13 @@ impl Job {
                 Next::Submitted => self.persist(store)?,
                 Next::Render(groups) => {
                     let table = self.checkpoint.search.materials();
+                    anyhow::ensure!(
+                        groups.iter().all(|g| g.changes.is_empty()),
+                        "refine_screen = \"differential\" is not served by the farm: its workers \
+                         return counts, not a differential render's estimates; submit the job \
+                         with refine_screen = \"direct\", or run it in process (reconstruct \
+                         without --data)"
+                    );
                     for g in groups {
                         let group = RenderGroup::new(
                             new_group_id(),

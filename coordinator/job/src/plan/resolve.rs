@@ -106,7 +106,15 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
             early_step2: options.early_step2,
             tie_z: options.tie_z,
             tiebreak: options.tiebreak.map(|(_, t)| t),
-            refine: options.refine.clone(),
+            refine: options.refine.clone().map(|mut r| {
+                // A differential render holds one f64 matrix of estimates per change.
+                let per_change = geometries.search.sources() * geometries.search.bins() * 8;
+                let fit = (256usize << 20) / per_change.max(1);
+                r.changes_per_render = r
+                    .changes_per_render
+                    .min(fit.clamp(1, u32::MAX as usize) as u32);
+                r
+            }),
         },
         table,
     )?;

@@ -358,6 +358,7 @@ fn score(value: f64, std_error: f64) -> Score {
         std_error,
         secondary: None,
         blocks: Vec::new(),
+        changes: Vec::new(),
     }
 }
 
@@ -609,26 +610,50 @@ fn scores_within_tie_z_standard_errors_tie_as_in_the_paper() {
 /// A likelihood-like score with blocks: minus the wrong pixels (worth 8 each, spread evenly
 /// over 8 blocks), plus seed noise that is the same for every map of one seed (so pairs cancel
 /// it), as common random numbers make it.
+/// A differential request's changes are scored as their own maps would be.
 fn blocked(truth: &[u16], r: &RenderRequest) -> Score {
-    let wrong = r
-        .assignment
+    let blocks_of = |a: &[u16]| -> Vec<f64> {
+        let wrong = a.iter().zip(truth).filter(|(a, b)| a != b).count() as f64;
+        (0..8)
+            .map(|b| -wrong + (r.seed % 89) as f64 * 0.1 + f64::from(b) * 0.01)
+            .collect()
+    };
+    let blocks = blocks_of(&r.assignment);
+    let changes = r
+        .changes
         .iter()
-        .zip(truth)
-        .filter(|(a, b)| a != b)
-        .count() as f64;
-    let blocks: Vec<f64> = (0..8)
-        .map(|b| -wrong + (r.seed % 89) as f64 * 0.1 + f64::from(b) * 0.01)
+        .map(|c| {
+            let mut a = r.assignment.clone();
+            for &(p, m) in &c.pixels {
+                a[p as usize] = m;
+            }
+            let blocks = blocks_of(&a);
+            Some(crate::machine::ChangeScore {
+                value: blocks.iter().sum(),
+                blocks,
+            })
+        })
         .collect();
     Score {
         value: blocks.iter().sum(),
         std_error: 0.0,
         secondary: None,
         blocks,
+        changes,
     }
 }
 
 #[test]
 fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
+    refinement_runs_and_resumes(crate::refine::Screen::Direct);
+}
+
+#[test]
+fn differential_refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
+    refinement_runs_and_resumes(crate::refine::Screen::Differential);
+}
+
+fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
     let names = ["moderate", "opaque", "mild"];
     let refine = RefineConfig {
         photons: 200,
@@ -636,6 +661,8 @@ fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
         z: 3.0,
         max_sweeps: 6,
         move_objects: true,
+        screen,
+        changes_per_render: 7,
     };
     let config = SearchConfig {
         grid: 4,
@@ -685,4 +712,9 @@ fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
     assert_eq!(restored_at.as_ref(), Some(&truth));
     let history = s.refinement().unwrap().history();
     assert_eq!(history.last().map(|h| h.candidates), Some(0));
+    let reweighted: u32 = history.iter().map(|h| h.reweighted).sum();
+    match screen {
+        crate::refine::Screen::Direct => assert_eq!(reweighted, 0),
+        crate::refine::Screen::Differential => assert!(reweighted > 0),
+    }
 }

@@ -139,6 +139,7 @@ mod tests {
             std_error,
             secondary: secondary.map(|(value, std_error)| Secondary { value, std_error }),
             blocks: Vec::new(),
+            changes: Vec::new(),
         }
     }
 

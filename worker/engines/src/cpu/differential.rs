@@ -359,21 +359,6 @@ mod tests {
         a
     }
 
-    /// `Σ (a − b)² / (va + vb)` over observations where either side has counts, and their
-    /// number: about 1 per observation when `a` and `b` estimate the same rates.
-    fn chi2(a: &[f64], va: &[f64], b: &[f64], vb: &[f64]) -> (f64, usize) {
-        let mut s = 0.0;
-        let mut n = 0;
-        for i in 0..a.len() {
-            let v = va[i] + vb[i];
-            if v > 0.0 {
-                s += (a[i] - b[i]).powi(2) / v;
-                n += 1;
-            }
-        }
-        (s, n)
-    }
-
     /// A map with a 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.
     fn map() -> Vec<u16> {
         let mut a = vec![0u16; 16];
@@ -413,7 +398,10 @@ mod tests {
         let mut halves = part(0, 200);
         halves.add(&part(200, 300)).unwrap();
         assert_eq!(halves.counts, d.counts);
-        let (x, y) = (halves.deltas[0].as_ref().unwrap(), d.deltas[0].as_ref().unwrap());
+        let (x, y) = (
+            halves.deltas[0].as_ref().unwrap(),
+            d.deltas[0].as_ref().unwrap(),
+        );
         assert!(x.iter().zip(y).all(|(p, q)| (p - q).abs() < 1e-9));
     }
 
