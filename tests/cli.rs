@@ -281,3 +281,53 @@ fn the_quality_bench_reports_each_run_and_its_level_zero_map() {
         / 2.0;
     assert!((scene["mean_level0_pixel_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12);
 }
+
+/// A scene named by an absolute path runs (its outputs under its file stem), and at the
+/// truth's grid the bench says whether the truth scores better than the map found.
+#[test]
+fn the_quality_bench_takes_scene_paths_and_checks_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("three.toml");
+    std::fs::write(&scene, crate::harness::scenes::THREE).unwrap();
+    scatterfarm_in(
+        &[
+            "bench",
+            "reconstruct",
+            "--engine",
+            "cpu",
+            "--scenes",
+            scene.to_str().unwrap(),
+            "--positions",
+            "16",
+            "--directions",
+            "3",
+            "--iterations",
+            "4",
+            "--target-photons",
+            "20000",
+            "--search",
+            "likelihood",
+            "--set",
+            "refine_sweeps=2",
+            "--check-photons",
+            "4096",
+            "--keep",
+            "runs",
+            "--out",
+            "bench.json",
+        ],
+        dir.path(),
+    )
+    .ok();
+    let bench: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    let run = &bench["runs"][0];
+    assert!(dir.path().join("runs/1/three/report.json").exists());
+    // The grid is the scene's own (4), so the truth is written in the search's table.
+    let z = run["truth_margin_z"].as_f64().expect("a truth check");
+    let margin = run["truth_margin"].as_f64().unwrap();
+    assert!(z.is_finite() && margin.is_finite(), "{run}");
+    if run["pixel_accuracy"] == 1.0 {
+        assert_eq!(margin, 0.0, "the map found is the truth: {run}");
+    }
+}

@@ -374,6 +374,59 @@ fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
     assert_eq!(strip(report), strip(farm));
 }
 
+/// Differential screening (issue 19's first part, in process): the refinement scores its
+/// changes from differential renders of the current map, finds the scene, and a seed fixes the
+/// result; the farm, whose workers return counts only, refuses such a job by name.
+#[test]
+fn differential_refinement_finds_the_scene_and_the_farm_refuses_it_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "--search",
+        "likelihood",
+        "--iterations",
+        "4",
+        "--permutations",
+        "1",
+        "--refine-sweeps",
+        "3",
+        "--refine-screen",
+        "differential",
+    ];
+    let report = reconstruct(dir.path(), THREE, "diff", &args);
+    assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
+    let sweeps = report["refinement"]
+        .as_array()
+        .expect("the sweeps are reported");
+    let reweighted: u64 = sweeps
+        .iter()
+        .map(|s| s["reweighted"].as_u64().unwrap())
+        .sum();
+    assert!(reweighted > 0, "{report:#}");
+    let again = reconstruct(dir.path(), THREE, "diff-again", &args);
+    let npy = |o: &str| std::fs::read(dir.path().join(o).join("materials.npy")).unwrap();
+    assert_eq!(npy("diff"), npy("diff-again"));
+    assert_eq!(report["photons"], again["photons"]);
+    let data = dir.path().join("data");
+    let mut with_data: Vec<&str> = args.to_vec();
+    with_data.extend(["--data", data.to_str().unwrap()]);
+    let scene_path = dir.path().join("farm.toml");
+    std::fs::write(&scene_path, THREE).unwrap();
+    let mut cmd = scatterfarm();
+    cmd.args(["reconstruct", "--scene"])
+        .arg(&scene_path)
+        .args(["--engine", "cpu", "--quiet", "--out"])
+        .arg(dir.path().join("farm"))
+        .args(&with_data);
+    let ran = output(cmd);
+    assert!(!ran.status.success(), "{}", ran.stderr);
+    assert!(
+        ran.stderr
+            .contains("refine_screen = \"differential\" is not served by the farm"),
+        "{}",
+        ran.stderr
+    );
+}
+
 /// Issue 17: a 100-byte NPY whose header claims a (2³⁰, 2³⁰) float32 array aborted the process
 /// with a 4 EiB allocation; it is now refused, naming the file and the expected shape, before
 /// anything is allocated.

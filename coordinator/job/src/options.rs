@@ -142,6 +142,8 @@ pub mod likelihood {
     pub const REFINE_Z: f64 = 3.0;
     /// The most refinement sweeps.
     pub const REFINE_SWEEPS: u32 = 8;
+    /// Doublings of the refinement's photons where it would otherwise end.
+    pub const REFINE_ESCALATIONS: u32 = 2;
     /// How sweeps score their changes.
     pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
         scatterfarm_search::refine::Screen::Direct;
@@ -245,6 +247,9 @@ impl JobSpec {
                     move_objects: self.refine_moves.unwrap_or(true),
                     screen: self.refine_screen.unwrap_or(likelihood::REFINE_SCREEN),
                     changes_per_render: likelihood::CHANGES_PER_RENDER,
+                    escalations: self
+                        .refine_escalations
+                        .unwrap_or(likelihood::REFINE_ESCALATIONS),
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

@@ -120,6 +120,9 @@ pub struct JobSpec {
     /// How a refinement sweep scores its changes: `direct` (a render of each) or
     /// `differential` (one differential render of the current map; in process only).
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
+    /// How many times refinement may double its photons where it would otherwise end
+    /// (likelihood: 2).
+    pub refine_escalations: Option<u32>,
     /// A label for job listings (job files only, no flag).
     pub name: Option<String>,
     /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
@@ -167,6 +170,7 @@ impl Default for JobSpec {
             refine_sweeps: None,
             refine_moves: None,
             refine_screen: None,
+            refine_escalations: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,

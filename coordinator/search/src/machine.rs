@@ -385,7 +385,7 @@ impl Search {
     pub fn budgets(&self) -> Vec<u32> {
         let mut budgets = self.config.photons.budgets(self.max_level() + 1);
         if let Some(r) = &self.config.refine {
-            budgets.extend([r.photons, r.confirm_photons]);
+            budgets.extend(Refinement::photon_levels(r));
             budgets.sort_unstable();
             budgets.dedup();
         }

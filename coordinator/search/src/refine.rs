@@ -47,6 +47,11 @@ pub struct RefineConfig {
     /// matrices).
     #[serde(default = "default_changes_per_render")]
     pub changes_per_render: u32,
+    /// How many times the stage may double its sweep and confirmation photons where it would
+    /// otherwise end (a sweep with no candidate, or two stalls): more photons where the signal
+    /// of the changes left is small.
+    #[serde(default)]
+    pub escalations: u32,
 }
 
 fn default_changes_per_render() -> u32 {
@@ -173,6 +178,9 @@ pub struct Refinement {
     current_score: Option<f64>,
     sweep: u32,
     stalls: u32,
+    /// Doublings of the photons so far.
+    #[serde(default)]
+    escalation: u32,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -199,6 +207,7 @@ impl Refinement {
             current_score: None,
             sweep: 0,
             stalls: 0,
+            escalation: 0,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -259,7 +268,7 @@ impl Refinement {
             return;
         }
         let seed = seeds::derive(self.job_seed, Stream::RefineSweep(self.sweep));
-        let photons = self.config.photons;
+        let photons = self.escalated(self.config.photons);
         let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
             assignment,
             seed,
@@ -296,6 +305,35 @@ impl Refinement {
             changes,
             reweighted,
         });
+    }
+
+    /// `photons` doubled for every escalation so far (at most 2³¹).
+    fn escalated(&self, photons: u32) -> u32 {
+        let p = u64::from(photons) << self.escalation.min(31);
+        p.min(1 << 31) as u32
+    }
+
+    /// Every photon count the stage may render with (for budgets).
+    pub fn photon_levels(config: &RefineConfig) -> Vec<u32> {
+        (0..=config.escalations.min(31))
+            .flat_map(|e| {
+                [config.photons, config.confirm_photons]
+                    .map(|p| (u64::from(p) << e).min(1 << 31) as u32)
+            })
+            .collect()
+    }
+
+    /// Doubles the photons and starts the next sweep, or ends the stage when it may not.
+    fn escalate_or_end(&mut self) {
+        if self.escalation < self.config.escalations {
+            self.escalation += 1;
+            self.stalls = 0;
+            self.sweep += 1;
+            self.emit_sweep();
+        } else {
+            self.waiting = None;
+            self.pending.clear();
+        }
     }
 
     /// Whether every pixel of `change` can be reweighted from the current map.
@@ -543,7 +581,7 @@ impl Refinement {
                 reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
                 map: self.current.clone(),
             });
-            self.waiting = None;
+            self.escalate_or_end();
             return;
         }
         let mut combined = self.current.clone();
@@ -553,7 +591,7 @@ impl Refinement {
             }
         }
         let seed = seeds::derive(self.job_seed, Stream::RefineConfirm(self.sweep));
-        let photons = self.config.confirm_photons;
+        let photons = self.escalated(self.config.confirm_photons);
         let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
             assignment,
             seed,
@@ -689,11 +727,11 @@ impl Refinement {
                 }
             }
         }
-        self.sweep += 1;
         if self.stalls >= 2 {
-            self.waiting = None;
+            self.escalate_or_end();
             return;
         }
+        self.sweep += 1;
         self.emit_sweep();
     }
 }
@@ -711,6 +749,7 @@ mod tests {
             move_objects: true,
             screen: Screen::Direct,
             changes_per_render: 1024,
+            escalations: 0,
         }
     }
 

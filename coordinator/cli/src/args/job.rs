@@ -144,6 +144,10 @@ pub struct JobArgs {
     /// process), rendering directly only the changes it cannot reweight.
     #[arg(long, value_name = "HOW", value_parser = choice::<scatterfarm_search::refine::Screen>())]
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
+    /// How many times refinement may double its sweep and confirmation photons where it would
+    /// otherwise end (likelihood: 2).
+    #[arg(long, value_name = "N")]
+    pub refine_escalations: Option<u32>,
 }
 
 impl JobArgs {
@@ -185,6 +189,7 @@ impl JobArgs {
             refine_sweeps: self.refine_sweeps,
             refine_moves: self.refine_moves,
             refine_screen: self.refine_screen,
+            refine_escalations: self.refine_escalations,
             ..JobSpec::default()
         }
     }

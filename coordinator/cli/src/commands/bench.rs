@@ -48,11 +48,14 @@ pub struct ReconstructBenchArgs {
     /// Scenes to run (default: fig7a … fig7l and phantom16).
     #[arg(long, value_delimiter = ',')]
     pub scenes: Option<Vec<String>>,
-    #[arg(long, default_value_t = 16)]
-    pub grid: u32,
-    #[arg(long, default_value_t = 16)]
+    /// The search grid (default: each scene's own, the truth's resolution).
+    #[arg(long)]
+    pub grid: Option<u32>,
+    /// Boundary positions and directions of target and search (the default, 32 × 5, carries
+    /// the objects' information at 200 000 target photons).
+    #[arg(long, default_value_t = 32)]
     pub positions: u32,
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 5)]
     pub directions: u32,
     #[arg(long, default_value_t = 1)]
     pub permutations: u32,
@@ -72,10 +75,10 @@ pub struct ReconstructBenchArgs {
         default_value = "1"
     )]
     pub seeds: Vec<u64>,
-    /// Photons per source of the synthesized targets (default: the search's); give the same
-    /// value when comparing budgets, so every search sees the same targets.
-    #[arg(long)]
-    pub target_photons: Option<u32>,
+    /// Photons per source of the synthesized targets; keep it when comparing searches, so
+    /// every search sees the same targets.
+    #[arg(long, default_value_t = 200_000)]
+    pub target_photons: u32,
     /// The search: the fast one (the reconstructions' default), or the paper's.
     #[arg(
         long,
@@ -117,7 +120,9 @@ impl ReconstructBenchArgs {
             "photons_per_iteration",
             i64::from(self.photons_per_iteration).into(),
         );
-        put("grid", i64::from(self.grid).into());
+        if let Some(grid) = self.grid {
+            put("grid", i64::from(grid).into());
+        }
         put("positions", i64::from(self.positions).into());
         put("directions", i64::from(self.directions).into());
         put(
@@ -128,9 +133,7 @@ impl ReconstructBenchArgs {
         if let Some(m) = self.metric {
             put("metric", toml::Value::try_from(m)?);
         }
-        if let Some(t) = self.target_photons {
-            put("target_photons", i64::from(t).into());
-        }
+        put("target_photons", i64::from(self.target_photons).into());
         for pair in &self.set {
             let (k, v) = pair
                 .split_once('=')
@@ -146,6 +149,24 @@ impl ReconstructBenchArgs {
         let text = toml::to_string(&keys)?;
         scatterfarm_job::spec::JobSpec::from_toml(&text, std::path::Path::new("--set"))
     }
+}
+
+/// The folder of a scene's run: a built-in name as it is, a scene file by its file stem (a
+/// scene named by an absolute path must not replace the whole output path).
+fn run_folder(scene: &str) -> String {
+    let stem = std::path::Path::new(scene)
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("scene");
+    stem.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
 }
 
 /// One scene's row of the quality table.
@@ -339,7 +360,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 .as_deref()
                 .unwrap_or(scratch.path())
                 .join(seed.to_string())
-                .join(scene);
+                .join(run_folder(scene));
             let params = args.params(scene, seed)?;
             let (report, check) = reconstruct::run_checked(
                 &params,

@@ -8,6 +8,11 @@ use anyhow::{Context, Result};
 use scatterfarm_search::identity::identity;
 use scatterfarm_search::steps::{GroupItem, Next};
 
+/// Why the farm takes no job whose refinement screens by differential renders.
+pub const DIFFERENTIAL_REFUSAL: &str = "refine_screen = \"differential\" is not served by the \
+    farm: its workers return counts, not a differential render's estimates; submit the job with \
+    refine_screen = \"direct\", or run it in process (reconstruct without --data)";
+
 impl Job {
     /// Makes sure the job has groups to render if it needs any: the missing setup renders, or
     /// the current step's unscored renders. Steps whose renders are all scored are submitted
@@ -69,10 +74,7 @@ impl Job {
                     let table = self.checkpoint.search.materials();
                     anyhow::ensure!(
                         groups.iter().all(|g| g.changes.is_empty()),
-                        "refine_screen = \"differential\" is not served by the farm: its workers \
-                         return counts, not a differential render's estimates; submit the job \
-                         with refine_screen = \"direct\", or run it in process (reconstruct \
-                         without --data)"
+                        "{DIFFERENTIAL_REFUSAL}"
                     );
                     for g in groups {
                         let group = RenderGroup::new(

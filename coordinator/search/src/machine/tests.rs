@@ -663,6 +663,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         move_objects: true,
         screen,
         changes_per_render: 7,
+        escalations: 0,
     };
     let config = SearchConfig {
         grid: 4,
