@@ -767,6 +767,9 @@ mod tests {
         run_with(config(), truth, start, materials, Vec::new())
     }
 
+    /// A score's value and blocks.
+    type Scored = (f64, Vec<f64>);
+
     /// Runs a refinement against [`score_of`]; a differential request's changes are scored as
     /// a direct render of each would be.
     fn run_with(
@@ -779,7 +782,7 @@ mod tests {
         let mut r = Refinement::new(config, 4, materials, 1, start, reweightable);
         let mut steps = 0;
         while !r.is_finished() {
-            let scored: Vec<((f64, Vec<f64>), Vec<Option<ChangeScore>>)> = r
+            let scored: Vec<(Scored, Vec<Option<ChangeScore>>)> = r
                 .pending()
                 .iter()
                 .map(|q| {

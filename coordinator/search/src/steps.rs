@@ -314,8 +314,8 @@ impl Steps {
         let mut base = score.clone();
         base.changes.clear();
         let mut new = Vec::with_capacity(2);
-        if !self.scores.contains_key(&plain) {
-            self.scores.insert(plain, (base.clone(), step));
+        if let std::collections::hash_map::Entry::Vacant(e) = self.scores.entry(plain) {
+            e.insert((base.clone(), step));
             new.push((plain, base, step));
         }
         self.scores.insert(item.identity, (score.clone(), step));

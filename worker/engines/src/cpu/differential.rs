@@ -418,8 +418,8 @@ mod tests {
         let direct = plain(&apply(&a, &change), 11, 2000);
         let delta = d.deltas[0].as_ref().unwrap();
         let mut off = 0.0;
-        for i in 0..delta.len() {
-            let est = f64::from(d.counts.counts[i]) + delta[i];
+        for (i, x) in delta.iter().enumerate() {
+            let est = f64::from(d.counts.counts[i]) + x;
             off += (est - f64::from(direct.counts[i])).abs();
         }
         let changed: f64 = delta.iter().map(|x| x.abs()).sum();
