@@ -140,8 +140,10 @@ fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
     farm.start_worker("b", &[]);
     farm.wait_workers(&["a", "b"]);
     let id = farm.submit_file("job/fast.toml");
-    let before = farm.wait_for(&id, "half of the requests", |s| {
-        s["state"] == "searching" && fraction(s) > 0.5
+    // A fifth of the requests: the job is short, and a later mark can pass between two polls
+    // on a loaded machine.
+    let before = farm.wait_for(&id, "a fifth of the requests", |s| {
+        s["state"] == "searching" && fraction(s) > 0.2
     });
     farm.kill_coordinator();
     farm.start_coordinator();

@@ -126,8 +126,9 @@ impl Medium {
         &self.cells[(iy as usize) * self.geometry.grid as usize + ix as usize]
     }
 
-    /// The distance from `pos` (in the closed square) along `dir` to the square's boundary.
-    fn exit_length(&self, pos: [f64; 2], dir: [f64; 2]) -> f64 {
+    /// The distances from `pos` (in the closed square) along `dir` to the square's vertical
+    /// and horizontal sides (infinite along a side's direction).
+    fn side_distances(&self, pos: [f64; 2], dir: [f64; 2]) -> (f64, f64) {
         let w = self.geometry.size_mm;
         let dist = |p: f64, d: f64| {
             if d > 0.0 {
@@ -138,7 +139,13 @@ impl Medium {
                 f64::INFINITY
             }
         };
-        dist(pos[0], dir[0]).min(dist(pos[1], dir[1]))
+        (dist(pos[0], dir[0]), dist(pos[1], dir[1]))
+    }
+
+    /// The distance from `pos` (in the closed square) along `dir` to the square's boundary.
+    fn exit_length(&self, pos: [f64; 2], dir: [f64; 2]) -> f64 {
+        let (tx, ty) = self.side_distances(pos, dir);
+        tx.min(ty)
     }
 
     /// The tracer's cell index of the pixel at assignment index `p` (row 0 at the top).
@@ -152,17 +159,7 @@ impl Medium {
     /// collision: the first side of the square the ray meets, or the corner it meets both at.
     fn exit_straight(&self, pos: [f64; 2], dir: [f64; 2]) -> usize {
         let w = self.geometry.size_mm;
-        let dist = |p: f64, d: f64| {
-            if d > 0.0 {
-                (w - p) / d
-            } else if d < 0.0 {
-                -p / d
-            } else {
-                f64::INFINITY
-            }
-        };
-        let tx = dist(pos[0], dir[0]);
-        let ty = dist(pos[1], dir[1]);
+        let (tx, ty) = self.side_distances(pos, dir);
         let s = if (tx - ty).abs() <= CORNER_TOLERANCE * self.h {
             // Through a corner: the edge whose arc-length interval starts there.
             corner_arc_length(dir[0] > 0.0, dir[1] > 0.0, w)
