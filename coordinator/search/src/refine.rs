@@ -120,6 +120,20 @@ pub struct BlockScore<'a> {
     pub changes: &'a [Option<ChangeScore>],
 }
 
+impl<'a> BlockScore<'a> {
+    /// The estimated score of change `j` of this differential render, if it was reweighted.
+    fn estimate(&self, j: usize) -> Option<BlockScore<'a>> {
+        self.changes
+            .get(j)
+            .and_then(Option::as_ref)
+            .map(|c| BlockScore {
+                value: c.value,
+                blocks: &c.blocks,
+                changes: &[],
+            })
+    }
+}
+
 /// What the pending requests are for.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 enum Waiting {
@@ -530,16 +544,7 @@ impl Refinement {
         let mut of_change: Vec<Option<BlockScore>> = vec![None; changes.len()];
         for (r, ks) in reweighted.iter().enumerate() {
             for (j, &k) in ks.iter().enumerate() {
-                of_change[k] =
-                    scores[r]
-                        .changes
-                        .get(j)
-                        .and_then(Option::as_ref)
-                        .map(|c| BlockScore {
-                            value: c.value,
-                            blocks: &c.blocks,
-                            changes: &[],
-                        });
+                of_change[k] = scores[r].estimate(j);
             }
         }
         let first_direct = reweighted.len().max(1);
@@ -666,19 +671,7 @@ impl Refinement {
     fn confirm_scored(&mut self, options: Vec<Vec<u16>>, reweighted: bool, scores: &[BlockScore]) {
         let reference = scores[0];
         let of_option: Vec<Option<BlockScore>> = if reweighted {
-            (0..options.len())
-                .map(|k| {
-                    reference
-                        .changes
-                        .get(k)
-                        .and_then(Option::as_ref)
-                        .map(|c| BlockScore {
-                            value: c.value,
-                            blocks: &c.blocks,
-                            changes: &[],
-                        })
-                })
-                .collect()
+            (0..options.len()).map(|k| reference.estimate(k)).collect()
         } else {
             (0..options.len())
                 .map(|k| scores.get(k + 1).copied())
