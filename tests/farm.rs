@@ -64,24 +64,26 @@ fn two_workers_reconstruct_exactly_what_reconstruct_does() {
 }
 
 #[test]
-fn a_coordinator_killed_three_times_resumes_to_the_same_result() {
+fn a_coordinator_killed_four_times_resumes_to_the_same_result() {
     let mut farm = Farm::start(&["--task-seconds", "0.05"]);
+    let id = farm.submit();
+
+    // 1: while preparing. No worker runs yet, so the job cannot have left it.
+    assert_eq!(farm.status(&id)["state"], "preparing");
+    farm.kill_coordinator();
+    farm.start_coordinator();
+    let after = farm.status(&id);
+    assert_eq!(after["state"], "preparing", "{after:#}");
+
+    // 2: with a render leased (polled over gRPC; preparing may be over by then under load).
     farm.start_worker("a", &[]);
     farm.start_worker("b", &[]);
     farm.wait_workers(&["a", "b"]);
-    let id = farm.submit();
-
-    // 1: while preparing, with a render leased (polled over gRPC: preparing is short).
     let rpc = Rpc::connect(&farm.address);
     let deadline = Instant::now() + JOB_LIMIT;
     let before = loop {
         let s = rpc.status(&id);
         if s.workers_busy > 0 {
-            assert_eq!(
-                s.state,
-                pb::JobState::Preparing as i32,
-                "the job left preparing before a lease was seen: {s:?}"
-            );
             break s;
         }
         assert!(
@@ -101,7 +103,7 @@ fn a_coordinator_killed_three_times_resumes_to_the_same_result() {
     );
     assert!(after["renders_done"].as_u64().unwrap() >= before.renders_done);
 
-    // 2 and 3: past 20 % and 70 % of the renders.
+    // 3 and 4: past 20 % and 70 % of the renders.
     for share in [0.2, 0.7] {
         let before = farm.wait_for(&id, &format!("{share} of the renders"), |s| {
             s["state"] == "searching" && fraction(s) > share
@@ -457,18 +459,77 @@ fn malformed_results_are_refused_with_a_reason() {
     let message = assert_code(rpc.complete(&fake, &task, counts), Code::InvalidArgument);
     assert!(message.contains("bytes"), "{message}");
 
-    // Three bad results: the fake is blocked for this job, which still has work.
-    let response = rpc.try_lease(&fake);
-    assert!(
-        response.task.is_none(),
-        "a worker that sent 3 bad results got {:?}",
-        response.task
-    );
+    // Three bad results: the fake is blocked for this job, which still has work; registering
+    // again under the same name does not clear that, nor does a coordinator restart.
+    let blocked = |rpc: &Rpc, fake: &str, when: &str| {
+        let response = rpc.try_lease(fake);
+        assert!(
+            response.task.is_none() && response.reason.contains("blocked"),
+            "{when}: a worker that sent 3 bad results got {:?} ({})",
+            response.task,
+            response.reason
+        );
+    };
+    blocked(&rpc, &fake, "at once");
+    let fake = rpc.register_fake("bad-results");
+    blocked(&rpc, &fake, "registered again");
+    drop(rpc);
+    farm.kill_coordinator();
+    farm.start_coordinator();
+    let rpc = Rpc::connect(&farm.address);
+    let fake = rpc.register_fake("bad-results");
+    blocked(&rpc, &fake, "after a restart");
 
     // A real worker renders the job, refused pieces included.
     farm.start_worker("real", &[]);
     farm.wait_finished(&id);
     farm.assert_reference_result(&id, false);
+}
+
+#[test]
+fn a_task_that_never_comes_back_fails_its_job_naming_it_and_task_ids_are_never_reused() {
+    let mut farm = Farm::start(&["--task-seconds", "0.05", "--max-attempts", "3"]);
+    let rpc = Rpc::connect(&farm.address);
+    let fake = rpc.register_fake("gives-back");
+    let id = farm.submit();
+
+    // Task ids of a restarted coordinator are new.
+    let before = rpc.lease(&fake);
+    drop(rpc);
+    farm.kill_coordinator();
+    farm.start_coordinator();
+    let rpc = Rpc::connect(&farm.address);
+    let fake = rpc.register_fake("gives-back");
+    let first = rpc.lease(&fake);
+    assert!(
+        first.task_id > before.task_id,
+        "task {} after a restart, {} before it",
+        first.task_id,
+        before.task_id
+    );
+
+    // The same piece, given back three times: the job fails, naming it.
+    let mut task = first.clone();
+    for attempt in 1..=3 {
+        assert_eq!(task.attempt, attempt, "{task:?}");
+        rpc.release(&fake, &task, "the engine crashed on it");
+        if attempt < 3 {
+            task = rpc.lease(&fake);
+            assert_eq!(task.task_id, first.task_id);
+        }
+    }
+    let status = farm.status(&id);
+    assert_eq!(status["state"], "failed", "{status:#}");
+    let message = status["message"].as_str().unwrap_or_default();
+    assert!(
+        message.contains(&format!("task {}", first.task_id))
+            && message.contains("3 times")
+            && message.contains("the engine crashed on it")
+            && message.contains("--max-attempts"),
+        "{status:#}"
+    );
+    // Nothing of it is leased any more.
+    assert!(rpc.try_lease(&fake).task.is_none());
 }
 
 #[test]

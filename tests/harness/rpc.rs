@@ -148,6 +148,19 @@ impl Rpc {
         self.worker_call(|mut w| async move { w.complete(request).await })
     }
 
+    /// Gives `task` back, as a worker that leaves or whose engine failed does.
+    pub fn release(&self, worker: &str, task: &pb::Task, reason: &str) {
+        let request = pb::ReleaseRequest {
+            worker_id: worker.to_string(),
+            job_id: task.job_id.clone(),
+            task_id: task.task_id,
+            attempt: task.attempt,
+            reason: reason.to_string(),
+        };
+        self.worker_call(|mut w| async move { w.release(request).await })
+            .unwrap_or_else(|s| panic!("release refused: {s:?}"));
+    }
+
     pub fn workers(&self) -> Vec<pb::WorkerStatus> {
         self.client_call(|mut c| async move { c.list_workers(pb::ListWorkersRequest {}).await })
             .workers

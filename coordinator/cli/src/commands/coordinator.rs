@@ -41,6 +41,10 @@ pub struct CoordinatorArgs {
     /// expected time).
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Leases of one task before its job fails with a reason naming the task (a task whose
+    /// lease expires, that a worker gives back or whose result is refused is leased again).
+    #[arg(long, default_value_t = 8)]
+    pub max_attempts: u32,
     /// On SIGTERM, wait this long for leased tasks to come back before stopping.
     #[arg(long, default_value_t = 60.0)]
     pub drain_seconds: f64,
@@ -70,6 +74,10 @@ impl CoordinatorArgs {
             "--lease-seconds must be positive"
         );
         ensure!(
+            (1..=1000).contains(&self.max_attempts),
+            "--max-attempts must be between 1 and 1000"
+        );
+        ensure!(
             self.drain_seconds >= 0.0 && self.drain_seconds.is_finite(),
             "--drain-seconds must be >= 0"
         );
@@ -92,6 +100,7 @@ impl CoordinatorArgs {
                 heartbeat: Duration::from_millis(self.heartbeat_ms),
                 missed_heartbeats: 3,
                 min_lease: Duration::from_secs_f64(self.lease_seconds),
+                max_attempts: self.max_attempts,
             },
             drain_timeout: Duration::from_secs_f64(self.drain_seconds),
         })

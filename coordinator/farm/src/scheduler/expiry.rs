@@ -1,6 +1,7 @@
 //! Expiry: leases past their deadline, or held by workers that stopped sending heartbeats, are
-//! handed out again, and those workers forgotten.
+//! handed out again (see [`giveback`](super::giveback)), and those workers forgotten.
 
+use super::giveback::Returned;
 use super::Scheduler;
 use std::time::Instant;
 
@@ -37,11 +38,12 @@ impl Scheduler {
                     l.worker
                 );
                 self.counters.leases_expired += 1;
-                if let Some(j) = self.jobs.get_mut(&l.job) {
-                    if let Some(g) = j.groups.iter_mut().find(|g| g.id == l.group) {
-                        g.give_back(l.piece);
-                    }
-                }
+                let detail = if self.workers.contains_key(&l.worker) {
+                    format!("worker {} did not return it in time", l.worker)
+                } else {
+                    format!("worker {} stopped sending heartbeats", l.worker)
+                };
+                self.piece_returned(l, Returned::Expired, &detail);
             }
         }
     }

@@ -1,6 +1,6 @@
 //! What clients ask of jobs: submit, look up, cancel, delete, and why an active job waits.
 
-use super::{Refusal, Scheduler, STRIKES};
+use super::{Refusal, Scheduler};
 use crate::job::Job;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
@@ -42,7 +42,7 @@ impl Scheduler {
         self.cancel(id)?;
         self.jobs.remove(id);
         self.store.delete_job(id).map_err(anyhow::Error::from)?;
-        self.strikes.retain(|(j, _), _| j != id);
+        self.strikes.forget(id);
         tracing::info!("job {id} deleted");
         Ok(())
     }
@@ -59,11 +59,7 @@ impl Scheduler {
             .workers
             .values()
             .filter(|w| job.accepts(&w.fingerprint_key))
-            .filter(|w| {
-                self.strikes
-                    .get(&(job.id.clone(), w.id.clone()))
-                    .is_none_or(|&s| s < STRIKES)
-            })
+            .filter(|w| !self.strikes.blocked(&job.id, &w.name))
             .count();
         if matching == 0 {
             return Some(match job.checkpoint.pinned.as_deref() {

@@ -58,15 +58,11 @@ impl Scheduler {
         let mut reason = "no job needs renders".to_string();
         for k in 0..ids.len() {
             let id = &ids[(start + k) % ids.len()];
-            if self
-                .strikes
-                .get(&(id.clone(), worker.id.clone()))
-                .is_some_and(|&s| s >= STRIKES)
-            {
+            if self.strikes.blocked(id, &worker.name) {
                 reason = format!("blocked for job {id} after {STRIKES} bad results");
                 continue;
             }
-            let (next_group, next_task) = (&mut self.next_group, &mut self.next_task);
+            let next_group = &mut self.next_group;
             let Some(job) = self.jobs.get_mut(id) else {
                 continue;
             };
@@ -100,12 +96,10 @@ impl Scheduler {
             };
             let per_photon = photons_per_launch(group);
             let max_photons = max_photons(&self.settings, worker.photons_per_second, per_photon);
-            let mut new_task = || {
-                let t = *next_task;
-                *next_task += 1;
-                t
-            };
-            let Some(piece) = group.take(max_photons, &mut new_task) else {
+            // Drawn before it is known to be needed (a requeued piece keeps its id): ids
+            // skipped that way are never seen.
+            let task_id = store.new_task_id().map_err(anyhow::Error::from)?;
+            let Some(piece) = group.take(max_photons, &mut || task_id) else {
                 continue;
             };
             let lease_for = lease_duration(

@@ -3,9 +3,10 @@
 //! Everything here is synchronous and driven by the gRPC services (one mutex around a
 //! [`Scheduler`]): workers register and lease pieces of render groups; jobs are served
 //! round-robin so many reconstructions progress together; a piece not returned by its deadline,
-//! or whose worker stops sending heartbeats, is leased again with the next attempt number;
-//! results are checked before they are summed, and a worker that sends three bad results is
-//! blocked for that job.
+//! or whose worker stops sending heartbeats, is leased again with the next attempt number, up to
+//! a cap; results are checked before they are summed, and a worker that sends three bad results
+//! is blocked for that job, across registrations and restarts. Task ids come from the store, so
+//! they are unique across coordinator runs.
 //!
 //! - [`jobs`]: what clients ask of jobs (submit, look up, cancel, delete, why one waits).
 //! - [`registry`]: registered workers ([`WorkerEntry`]) and their heartbeats.
@@ -13,16 +14,23 @@
 //! - [`sizing`]: how many photons a piece holds and how long its lease lasts.
 //! - [`results`]: checking a returned result against its lease and summing it; give-backs.
 //! - [`expiry`]: leases past their deadline and silent workers.
+//! - [`giveback`]: pieces that come back without a result, and the attempt cap.
+//! - [`strikes`]: bad results per job and worker identity, stored with the job.
 
 mod expiry;
+mod giveback;
 mod jobs;
 mod lease;
 mod registry;
 mod results;
 mod sizing;
+mod strikes;
 
 pub use lease::{Lease, TaskOut};
 pub use registry::WorkerEntry;
+pub use results::Rendered;
+use strikes::Strikes;
+pub use strikes::STRIKES;
 
 use super::job::Job;
 use super::store::Store;
@@ -42,6 +50,9 @@ pub struct Settings {
     pub missed_heartbeats: u32,
     /// The shortest lease; a lease lasts the longer of this and 5 × the expected render time.
     pub min_lease: Duration,
+    /// Leases of one piece before its job fails (a piece that expires, is given back or whose
+    /// result is refused is leased again, up to this many times in all).
+    pub max_attempts: u32,
 }
 
 impl Default for Settings {
@@ -51,12 +62,10 @@ impl Default for Settings {
             heartbeat: Duration::from_secs(2),
             missed_heartbeats: 3,
             min_lease: Duration::from_secs(30),
+            max_attempts: 8,
         }
     }
 }
-
-/// Bad results a worker may send for one job before it is blocked for it.
-pub const STRIKES: u32 = 3;
 
 /// Why a request is refused; the service maps these to gRPC status codes.
 #[derive(Debug, thiserror::Error)]
@@ -97,11 +106,10 @@ pub struct Scheduler {
     pub workers: HashMap<String, WorkerEntry>,
     /// By task id.
     pub leases: HashMap<u64, Lease>,
-    /// (job, worker) → bad results.
-    strikes: HashMap<(String, String), u32>,
+    /// Bad results per job and worker identity.
+    strikes: Strikes,
     /// The job served last, for round-robin.
     last_served: Option<String>,
-    next_task: u64,
     next_group: u64,
     next_worker: u64,
     /// Makes worker ids of different coordinator runs differ.
@@ -136,15 +144,15 @@ impl Scheduler {
                 Err(e) => tracing::error!("cannot load job {id}: {e:#}"),
             }
         }
+        let strikes = Strikes::load(store.as_ref(), jobs.keys());
         Ok(Scheduler {
             store,
             settings,
             jobs,
             workers: HashMap::new(),
             leases: HashMap::new(),
-            strikes: HashMap::new(),
+            strikes,
             last_served: None,
-            next_task: 1,
             next_group: 1,
             next_worker: 1,
             boot: super::nonce(),

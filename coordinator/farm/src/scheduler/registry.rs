@@ -1,5 +1,5 @@
-//! The registry of workers: who registered with which engine and speed, and when each was last
-//! heard from.
+//! The registry of workers: who registered with which engine and speed (then measured on the
+//! pieces each returns), and when each was last heard from.
 
 use super::Scheduler;
 use scatterfarm_model::EngineFingerprint;
@@ -16,6 +16,22 @@ pub struct WorkerEntry {
     pub photons_per_second: f64,
     pub last_seen: Instant,
     pub tasks_completed: u64,
+}
+
+/// The weight of a new measurement in a worker's speed (an exponential moving average).
+const SPEED_WEIGHT: f64 = 0.5;
+
+impl WorkerEntry {
+    /// Folds a returned piece into the worker's speed: `photons` (all sources and assignments)
+    /// rendered in `seconds`. Measurements under a millisecond are noise and ignored.
+    pub fn measured(&mut self, photons: f64, seconds: f64) {
+        if !(seconds.is_finite() && seconds >= 1e-3 && photons.is_finite() && photons > 0.0) {
+            return;
+        }
+        let speed = photons / seconds;
+        self.photons_per_second =
+            (1.0 - SPEED_WEIGHT) * self.photons_per_second + SPEED_WEIGHT * speed;
+    }
 }
 
 impl Scheduler {

@@ -2,9 +2,20 @@
 //! attempt) and its group, counted against the worker if malformed, and otherwise summed; a
 //! complete group is scored and advances its job.
 
+use super::giveback::Returned;
 use super::{Lease, Refusal, Scheduler, STRIKES};
 use crate::work::RenderGroup;
 use scatterfarm_model::CountMatrix;
+
+/// What a worker returns for a piece.
+#[derive(Debug)]
+pub struct Rendered {
+    /// One matrix per assignment, or why the result could not be decoded.
+    pub counts: Result<Vec<CountMatrix>, String>,
+    pub scatter_events: u64,
+    /// The worker's own time for the render, which feeds its measured speed.
+    pub render_seconds: f64,
+}
 
 impl Scheduler {
     /// The lease a result claims to answer, checked for worker, job and attempt.
@@ -54,9 +65,13 @@ impl Scheduler {
         job_id: &str,
         task: u64,
         attempt: u32,
-        counts: Result<Vec<CountMatrix>, String>,
-        scatter_events: u64,
+        rendered: Rendered,
     ) -> Result<(), Refusal> {
+        let Rendered {
+            counts,
+            scatter_events,
+            render_seconds,
+        } = rendered;
         let refused = |scheduler: &mut Scheduler, r: Refusal| {
             scheduler.counters.results_refused += 1;
             tracing::warn!("result of task {task} attempt {attempt} from {worker} refused: {r}");
@@ -81,30 +96,34 @@ impl Scheduler {
         };
         if let Err(r) = check {
             self.leases.remove(&task);
-            if let Refusal::Invalid(_) = r {
-                let strikes = self
-                    .strikes
-                    .entry((job_id.to_string(), worker.to_string()))
-                    .or_insert(0);
-                *strikes += 1;
-                if *strikes >= STRIKES {
+            if let Refusal::Invalid(why) = &r {
+                let identity = self
+                    .workers
+                    .get(worker)
+                    .map(|w| w.name.clone())
+                    .unwrap_or_else(|| worker.to_string());
+                let n = self.strikes.add(job_id, &identity, store.as_ref());
+                if n >= STRIKES {
                     tracing::warn!(
-                        "worker {worker} sent {STRIKES} bad results for job {job_id}: blocked for it"
+                        "worker {worker} ({identity}) sent {STRIKES} bad results for job \
+                         {job_id}: blocked for it"
                     );
                 }
-                if let Ok(job) = self.job_mut(job_id) {
-                    if let Some(g) = job.groups.iter_mut().find(|g| g.id == lease.group) {
-                        g.give_back(lease.piece);
-                    }
-                }
+                let detail = format!("worker {worker} ({identity}) sent: {why}");
+                self.piece_returned(lease, Returned::Refused, &detail);
             }
             return refused(self, r);
         }
         let counts = counts.map_err(Refusal::Invalid)?;
         self.leases.remove(&task);
         self.counters.results_accepted += 1;
+        let per_launch = job_photons_per_launch(self, job_id, lease.group);
         if let Some(w) = self.workers.get_mut(worker) {
             w.tasks_completed += 1;
+            w.measured(
+                u64::from(lease.piece.count) as f64 * per_launch,
+                render_seconds,
+            );
         }
         let next_group = &mut self.next_group;
         let mut new_group = || {
@@ -150,11 +169,17 @@ impl Scheduler {
         let lease = self.check_lease(worker, job, task, attempt)?.clone();
         tracing::warn!("worker {worker} gave back task {task}: {reason}");
         self.leases.remove(&task);
-        if let Some(j) = self.jobs.get_mut(job) {
-            if let Some(g) = j.groups.iter_mut().find(|g| g.id == lease.group) {
-                g.give_back(lease.piece);
-            }
-        }
+        let detail = format!("worker {worker}: {reason}");
+        self.piece_returned(lease, Returned::GivenBack, &detail);
         Ok(())
     }
+}
+
+/// Photons one photon index of `job`'s group `group` launches (sources × assignments); 0 when
+/// the group is gone.
+fn job_photons_per_launch(s: &Scheduler, job: &str, group: u64) -> f64 {
+    s.jobs
+        .get(job)
+        .and_then(|j| j.groups.iter().find(|g| g.id == group))
+        .map_or(0.0, |g| (g.geometry.sources() * g.items.len()) as f64)
 }

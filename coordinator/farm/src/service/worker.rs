@@ -2,7 +2,7 @@
 //! give tasks back.
 
 use super::Farm;
-use crate::scheduler::TaskOut;
+use crate::scheduler::{Rendered, TaskOut};
 use scatterfarm_model::PhotonRange;
 use scatterfarm_proto::convert::{
     fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
@@ -129,8 +129,11 @@ impl WorkerService for WorkerApi {
                 &r.job_id,
                 r.task_id,
                 r.attempt,
-                counts,
-                r.scatter_events,
+                Rendered {
+                    counts,
+                    scatter_events: r.scatter_events,
+                    render_seconds: r.render_seconds,
+                },
             )
         })
         .await

@@ -4,7 +4,7 @@
 use super::mutate::Mutator;
 use prost::Message;
 use scatterfarm_coordinator::job::Job;
-use scatterfarm_coordinator::store::{decode_score, Store, StoreError};
+use scatterfarm_coordinator::store::{decode_score, MemoryStore, Store};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::observation::{self, Sidecar};
 use scatterfarm_job::plan::{parse_bounds, Plan};
@@ -12,19 +12,14 @@ use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::{CountMatrix, Geometry, Material, RenderItem, Scene};
 use scatterfarm_proto::convert;
 use scatterfarm_proto::v1;
-use scatterfarm_search::Score;
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::Mutex;
 
 /// An input: one or more parts (an NPY and its sidecar, a task and its result).
 pub type Input = Vec<Vec<u8>>;
 
 /// A structure-aware generator of inputs.
 pub type Generator = fn(&mut Mutator) -> Input;
-
-/// Stored scores by job: identity and value bytes.
-type ScoreBytes = BTreeMap<String, Vec<([u8; 32], Vec<u8>)>>;
 
 /// One parser under the fuzzer.
 pub struct Target {
@@ -227,86 +222,11 @@ fn generate_observation(m: &mut Mutator) -> Vec<Vec<u8>> {
     vec![npy, side]
 }
 
-/// A store in memory, for restoring fuzzed records.
-#[derive(Default)]
-pub struct MemStore {
-    records: Mutex<BTreeMap<String, Vec<u8>>>,
-    progress: Mutex<BTreeMap<String, Vec<u8>>>,
-    blobs: Mutex<BTreeMap<(String, String), Vec<u8>>>,
-    scores: Mutex<ScoreBytes>,
-}
-
-fn locked<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-impl Store for MemStore {
-    fn new_job_id(&self) -> Result<String, StoreError> {
-        Ok("j1".into())
-    }
-    fn put_record(&self, job: &str, record: &[u8]) -> Result<(), StoreError> {
-        locked(&self.records).insert(job.into(), record.to_vec());
-        Ok(())
-    }
-    fn records(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
-        Ok(locked(&self.records).clone().into_iter().collect())
-    }
-    fn put_progress(&self, job: &str, progress: &[u8]) -> Result<(), StoreError> {
-        locked(&self.progress).insert(job.into(), progress.to_vec());
-        Ok(())
-    }
-    fn progress(&self, job: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(locked(&self.progress).get(job).cloned())
-    }
-    fn put_blob(&self, job: &str, name: &str, bytes: &[u8]) -> Result<(), StoreError> {
-        locked(&self.blobs).insert((job.into(), name.into()), bytes.to_vec());
-        Ok(())
-    }
-    fn blob(&self, job: &str, name: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(locked(&self.blobs).get(&(job.into(), name.into())).cloned())
-    }
-    fn put_score(
-        &self,
-        job: &str,
-        id: &[u8; 32],
-        score: Score,
-        step: u64,
-    ) -> Result<(), StoreError> {
-        let mut v = Vec::new();
-        v.extend_from_slice(&score.value.to_le_bytes());
-        v.extend_from_slice(&step.to_le_bytes());
-        v.extend_from_slice(&score.std_error.to_le_bytes());
-        if let Some(s) = score.secondary {
-            v.extend_from_slice(&s.value.to_le_bytes());
-            v.extend_from_slice(&s.std_error.to_le_bytes());
-        }
-        locked(&self.scores)
-            .entry(job.into())
-            .or_default()
-            .push((*id, v));
-        Ok(())
-    }
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError> {
-        let mut out = BTreeMap::new();
-        for (id, v) in locked(&self.scores).get(job).into_iter().flatten() {
-            out.insert(*id, decode_score(v)?);
-        }
-        Ok(out)
-    }
-    fn delete_job(&self, job: &str) -> Result<(), StoreError> {
-        locked(&self.records).remove(job);
-        Ok(())
-    }
-    fn flush(&self) -> Result<(), StoreError> {
-        Ok(())
-    }
-}
-
 /// Stored records of submitted jobs: record, progress and one score, the inputs kept aside.
 fn record_seeds() -> Vec<Vec<Vec<u8>>> {
     let mut seeds = Vec::new();
     for job in [JOB, JOB_RANDOM, JOB_CAPTURE] {
-        let store = MemStore::default();
+        let store = MemoryStore::new();
         let Ok(spec) = JobSpec::from_toml(job, Path::new("job.toml")) else {
             continue;
         };
@@ -330,12 +250,12 @@ fn record_seeds() -> Vec<Vec<Vec<u8>>> {
 }
 
 fn run_record(input: &[Vec<u8>]) -> bool {
-    let store = MemStore::default();
+    let store = MemoryStore::new();
     for (name, bytes) in &inputs().files {
         let _ = store.put_blob("j1", &format!("input/{name}"), bytes);
     }
     let _ = store.put_progress("j1", &input[1]);
-    locked(&store.scores).insert("j1".into(), vec![([7; 32], input[2].clone())]);
+    store.put_raw_score("j1", &[7; 32], &input[2]);
     decode_score(&input[2]).is_ok() && Job::restore("j1".into(), &input[0], &store).is_ok()
 }
 

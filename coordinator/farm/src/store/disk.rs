@@ -1,67 +1,11 @@
-//! Durable coordinator state behind a small trait: job records (parameters and input files),
-//! job progress (search state after each step, pinned engine, ε), scores of completed renders
-//! keyed by render identity, setup products and final outputs.
-//!
-//! Count matrices are never stored: a `kill -9` loses at most the renders in progress. The sled
-//! implementation checks a schema version when it opens a data folder.
+//! The sled store of a data folder: one tree per kind of record, job-prefixed keys, a schema
+//! version checked on open, and every write flushed before it returns.
 
-use scatterfarm_search::{Score, Secondary};
+use super::score_codec::{decode_score, encode_score};
+use super::{Store, StoreError, SCHEMA_VERSION};
+use scatterfarm_search::Score;
 use std::collections::BTreeMap;
 use std::path::Path;
-use thiserror::Error;
-
-/// The layout of the data this build writes. A data folder of another version is refused.
-pub const SCHEMA_VERSION: u32 = 2;
-
-#[derive(Debug, Error)]
-pub enum StoreError {
-    #[error("cannot open the data folder {path}: {source}")]
-    Open { path: String, source: sled::Error },
-    #[error(
-        "the data folder {path} has schema version {found}, this build reads version {expected}: \
-         use a scatterfarm of the version that wrote it, or a new data folder"
-    )]
-    Schema {
-        path: String,
-        found: u32,
-        expected: u32,
-    },
-    #[error("the data store failed: {0}")]
-    Sled(#[from] sled::Error),
-    #[error("a stored {what} is damaged: {detail}")]
-    Damaged { what: &'static str, detail: String },
-}
-
-/// What the coordinator keeps across restarts. Keys are job ids; values are opaque bytes the
-/// coordinator encodes.
-pub trait Store: Send + Sync {
-    /// A new, never reused job id.
-    fn new_job_id(&self) -> Result<String, StoreError>;
-    /// Stores a job's immutable record (parameters and input files).
-    fn put_record(&self, job: &str, record: &[u8]) -> Result<(), StoreError>;
-    /// Every stored job's record.
-    fn records(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError>;
-    /// Replaces a job's progress (state after a step) and makes it durable.
-    fn put_progress(&self, job: &str, progress: &[u8]) -> Result<(), StoreError>;
-    fn progress(&self, job: &str) -> Result<Option<Vec<u8>>, StoreError>;
-    /// A named blob of a job (setup products such as the target, final outputs).
-    fn put_blob(&self, job: &str, name: &str, bytes: &[u8]) -> Result<(), StoreError>;
-    fn blob(&self, job: &str, name: &str) -> Result<Option<Vec<u8>>, StoreError>;
-    /// The score of a completed render, keyed by its identity, with the first request index
-    /// of the search step it was rendered for.
-    fn put_score(
-        &self,
-        job: &str,
-        identity: &[u8; 32],
-        score: Score,
-        step: u64,
-    ) -> Result<(), StoreError>;
-    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError>;
-    /// Removes everything of a job.
-    fn delete_job(&self, job: &str) -> Result<(), StoreError>;
-    /// Makes every write so far durable.
-    fn flush(&self) -> Result<(), StoreError>;
-}
 
 /// The sled store of a data folder.
 pub struct SledStore {
@@ -130,8 +74,14 @@ impl Store for SledStore {
         // sled ids are unique across restarts; a short random tail keeps ids of different data
         // folders apart.
         let n = self.db.generate_id()?;
-        let tail = super::nonce() as u16;
+        let tail = crate::nonce() as u16;
         Ok(format!("j{n}-{tail:04x}"))
+    }
+
+    fn new_task_id(&self) -> Result<u64, StoreError> {
+        // sled's ids are monotonic across restarts: recovery skips past every id it may have
+        // handed out before a crash.
+        Ok(self.db.generate_id()?)
     }
 
     fn put_record(&self, job: &str, record: &[u8]) -> Result<(), StoreError> {
@@ -224,92 +174,27 @@ impl Store for SledStore {
     }
 }
 
-/// A stored score: value, step and standard error (little-endian f64, u64, f64); then, when
-/// there is a secondary score, its value and error; then, when there are likelihood blocks,
-/// their count (u64) and values. The secondary is present when the remainder after the first
-/// three words is 16 bytes, or 16 bytes plus a block list; a block list alone starts right
-/// after the first three words. The two cases are told apart by the block count.
-fn encode_score(score: &Score, step: u64) -> Vec<u8> {
-    let mut value = Vec::with_capacity(40 + 8 * (score.blocks.len() + 1));
-    value.extend_from_slice(&score.value.to_le_bytes());
-    value.extend_from_slice(&step.to_le_bytes());
-    value.extend_from_slice(&score.std_error.to_le_bytes());
-    if let Some(s) = score.secondary {
-        value.extend_from_slice(&s.value.to_le_bytes());
-        value.extend_from_slice(&s.std_error.to_le_bytes());
-    }
-    if !score.blocks.is_empty() {
-        value.extend_from_slice(&(score.blocks.len() as u64).to_le_bytes());
-        for b in &score.blocks {
-            value.extend_from_slice(&b.to_le_bytes());
-        }
-    }
-    value
-}
-
-/// The inverse of [`encode_score`]; a record of any other shape is damaged.
-pub fn decode_score(v: &[u8]) -> Result<(Score, u64), StoreError> {
-    let damaged = || StoreError::Damaged {
-        what: "score",
-        detail: format!("{} bytes", v.len()),
-    };
-    if v.len() < 24 || !v.len().is_multiple_of(8) {
-        return Err(damaged());
-    }
-    let words: Vec<[u8; 8]> = v
-        .chunks_exact(8)
-        .map(|c| {
-            let mut b = [0u8; 8];
-            b.copy_from_slice(c);
-            b
-        })
-        .collect();
-    let f = |i: usize| f64::from_le_bytes(words[i]);
-    let rest = words.len() - 3;
-    // A block list at word `at`: its count fills the rest exactly.
-    let blocks_at = |at: usize| -> Option<Vec<f64>> {
-        let n = u64::from_le_bytes(*words.get(at)?);
-        (n > 0 && usize::try_from(n).ok()? == words.len() - at - 1)
-            .then(|| (at + 1..words.len()).map(f).collect())
-    };
-    let (secondary, blocks) = match rest {
-        0 => (None, Vec::new()),
-        2 if blocks_at(3).is_none() => (
-            Some(Secondary {
-                value: f(3),
-                std_error: f(4),
-            }),
-            Vec::new(),
-        ),
-        _ => match blocks_at(3) {
-            Some(b) => (None, b),
-            None => match blocks_at(5) {
-                Some(b) => (
-                    Some(Secondary {
-                        value: f(3),
-                        std_error: f(4),
-                    }),
-                    b,
-                ),
-                None => return Err(damaged()),
-            },
-        },
-    };
-    Ok((
-        Score {
-            value: f(0),
-            std_error: f(2),
-            secondary,
-            blocks,
-            changes: Vec::new(),
-        },
-        u64::from_le_bytes(words[1]),
-    ))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use scatterfarm_search::Secondary;
+
+    /// Opens `dir` again in this process. sled's flusher thread of the store just dropped may
+    /// still hold the folder's lock for a moment on a loaded machine (a new process never
+    /// meets that), so this retries for up to five seconds.
+    fn reopen(dir: &Path) -> SledStore {
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        loop {
+            match SledStore::open(dir) {
+                Ok(s) => return s,
+                Err(e) if std::time::Instant::now() < until => {
+                    eprintln!("reopening: {e}; again");
+                    std::thread::sleep(std::time::Duration::from_millis(50));
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+    }
 
     #[test]
     fn survives_reopen_and_keeps_jobs_apart() {
@@ -345,7 +230,7 @@ mod tests {
             s.put_blob(&a, "target", b"xyz").unwrap();
             s.flush().unwrap();
         }
-        let s = SledStore::open(dir.path()).unwrap();
+        let s = reopen(dir.path());
         assert_eq!(s.records().unwrap().len(), 2);
         assert_eq!(s.progress(&a).unwrap().as_deref(), Some(&b"p2"[..]));
         assert_eq!(
@@ -375,52 +260,6 @@ mod tests {
         assert!(s.scores(&a).unwrap().is_empty());
         assert!(s.blob(&a, "target").unwrap().is_none());
         assert_eq!(s.scores(&b).unwrap().len(), 1);
-    }
-
-    #[test]
-    fn scores_round_trip_in_every_shape_and_damage_is_named() {
-        let shapes = [
-            Score::exact(0.25),
-            Score {
-                secondary: Some(Secondary {
-                    value: -1.0,
-                    std_error: 0.5,
-                }),
-                ..Score::exact(0.5)
-            },
-            Score {
-                blocks: vec![-1.5, -2.0, -0.25],
-                changes: Vec::new(),
-                ..Score::exact(-3.75)
-            },
-            Score {
-                secondary: Some(Secondary {
-                    value: 3.0,
-                    std_error: 1.0,
-                }),
-                blocks: vec![-4.0, -5.0],
-                changes: Vec::new(),
-                ..Score::exact(-9.0)
-            },
-        ];
-        for (step, score) in shapes.into_iter().enumerate() {
-            let bytes = encode_score(&score, step as u64);
-            assert_eq!(decode_score(&bytes).unwrap(), (score, step as u64));
-        }
-        assert!(decode_score(&[0; 23]).is_err());
-        assert!(decode_score(&[0; 25]).is_err());
-        // A block count that does not fill the record.
-        let mut bad = encode_score(
-            &Score {
-                blocks: vec![1.0, 2.0],
-                changes: Vec::new(),
-                ..Score::exact(0.0)
-            },
-            0,
-        );
-        bad.truncate(bad.len() - 8);
-        bad.extend_from_slice(&[0; 16]);
-        assert!(decode_score(&bad).is_err());
     }
 
     #[test]

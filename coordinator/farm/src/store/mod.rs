@@ -1,0 +1,80 @@
+//! Durable coordinator state behind a small trait: job records (parameters and input files),
+//! job progress (search state after each step, pinned engine, ε), scores of completed renders
+//! keyed by render identity, setup products and final outputs.
+//!
+//! Count matrices are never stored: a `kill -9` loses at most the renders in progress.
+//!
+//! - [`disk`]: the [`SledStore`] of a data folder, which checks a schema version when it opens.
+//! - [`memory`]: the [`MemoryStore`], which keeps everything in memory and can be told to fail
+//!   writes (the store-fault tests, and the fuzz bench's restores).
+//! - [`score_codec`]: how a render's score is written as bytes, and read back.
+
+pub mod disk;
+pub mod memory;
+pub mod score_codec;
+
+pub use disk::SledStore;
+pub use memory::MemoryStore;
+pub use score_codec::decode_score;
+
+use scatterfarm_search::Score;
+use std::collections::BTreeMap;
+use thiserror::Error;
+
+/// The layout of the data this build writes. A data folder of another version is refused.
+pub const SCHEMA_VERSION: u32 = 2;
+
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error("cannot open the data folder {path}: {source}")]
+    Open { path: String, source: sled::Error },
+    #[error(
+        "the data folder {path} has schema version {found}, this build reads version {expected}: \
+         use a scatterfarm of the version that wrote it, or a new data folder"
+    )]
+    Schema {
+        path: String,
+        found: u32,
+        expected: u32,
+    },
+    #[error("the data store failed: {0}")]
+    Sled(#[from] sled::Error),
+    #[error("a stored {what} is damaged: {detail}")]
+    Damaged { what: &'static str, detail: String },
+    /// A write the [`MemoryStore`] was told to fail.
+    #[error("write {0} failed: the store was told to fail it (a test of store faults)")]
+    Injected(u64),
+}
+
+/// What the coordinator keeps across restarts. Keys are job ids; values are opaque bytes the
+/// coordinator encodes.
+pub trait Store: Send + Sync {
+    /// A new, never reused job id.
+    fn new_job_id(&self) -> Result<String, StoreError>;
+    /// A new task id, never handed out before by any coordinator run on this store.
+    fn new_task_id(&self) -> Result<u64, StoreError>;
+    /// Stores a job's immutable record (parameters and input files).
+    fn put_record(&self, job: &str, record: &[u8]) -> Result<(), StoreError>;
+    /// Every stored job's record.
+    fn records(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError>;
+    /// Replaces a job's progress (state after a step) and makes it durable.
+    fn put_progress(&self, job: &str, progress: &[u8]) -> Result<(), StoreError>;
+    fn progress(&self, job: &str) -> Result<Option<Vec<u8>>, StoreError>;
+    /// A named blob of a job (setup products such as the target, final outputs).
+    fn put_blob(&self, job: &str, name: &str, bytes: &[u8]) -> Result<(), StoreError>;
+    fn blob(&self, job: &str, name: &str) -> Result<Option<Vec<u8>>, StoreError>;
+    /// The score of a completed render, keyed by its identity, with the first request index
+    /// of the search step it was rendered for.
+    fn put_score(
+        &self,
+        job: &str,
+        identity: &[u8; 32],
+        score: Score,
+        step: u64,
+    ) -> Result<(), StoreError>;
+    fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError>;
+    /// Removes everything of a job.
+    fn delete_job(&self, job: &str) -> Result<(), StoreError>;
+    /// Makes every write so far durable.
+    fn flush(&self) -> Result<(), StoreError>;
+}
