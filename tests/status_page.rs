@@ -2,11 +2,13 @@
 //! and must show the job, the worker and the job's current best map (the image must load). A
 //! screenshot is kept in `target/test-artifacts/status-page.png`.
 //!
-//! Needs Debian's `chromium`. Without it the test says loudly that it skipped, except under
+//! The token check of the web face is tested with plain HTTP requests.
+//!
+//! The page test needs Debian's `chromium`. Without it the test says loudly that it skipped, except under
 //! `CI=true`, where it fails.
 
 use crate::harness::gating::{chromium, skip_or_fail};
-use crate::harness::net::{free_port, wait_for_file};
+use crate::harness::net::{free_port, http, wait_for_file};
 use crate::harness::process::{output, repo_root, scatterfarm, Proc};
 use crate::harness::scenes::LONG_DEMO_JOB;
 use std::path::Path;
@@ -120,4 +122,86 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
     let meta = std::fs::metadata(&shot).expect("chromium wrote the screenshot");
     assert!(meta.len() > 1000, "the screenshot is empty");
     eprintln!("screenshot: {}", shot.display());
+}
+
+#[test]
+fn the_web_face_asks_for_the_coordinators_token_unless_told_not_to() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("token"), "s3cret\n").unwrap();
+    let start = |open: bool| {
+        let port = free_port();
+        let mut c = scatterfarm();
+        c.args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+            .arg(dir.path().join(if open { "data-open" } else { "data" }))
+            .arg("--token-file")
+            .arg(dir.path().join("token"))
+            .args(["--http", &format!("127.0.0.1:{port}")]);
+        if open {
+            c.arg("--http-open");
+        }
+        (Proc::spawn(c), port)
+    };
+    let (_coordinator, port) = start(false);
+    let browser = "Accept: text/html";
+    for path in ["/", "/metrics", "/jobs/j1/map.png"] {
+        let r = http(port, "GET", path, &[browser], "");
+        assert_eq!(r.status, 401, "{path} without the token: {}", r.body);
+    }
+    let r = http(port, "GET", "/", &[browser], "");
+    assert!(
+        r.body.contains("<form") && r.body.contains("/login"),
+        "{}",
+        r.body
+    );
+    let r = http(port, "GET", "/metrics", &[], "");
+    assert!(r.body.contains("Authorization: Bearer"), "{}", r.body);
+    let r = http(port, "GET", "/metrics", &["Authorization: Bearer nope"], "");
+    assert_eq!(r.status, 401);
+
+    // As Prometheus asks: a bearer header.
+    let r = http(
+        port,
+        "GET",
+        "/metrics",
+        &["Authorization: Bearer s3cret"],
+        "",
+    );
+    assert_eq!(r.status, 200, "{}", r.body);
+    assert!(r.body.contains("scatterfarm_jobs"), "{}", r.body);
+
+    // As a browser does: the form sets a cookie.
+    let form = "Content-Type: application/x-www-form-urlencoded";
+    let r = http(port, "POST", "/login", &[form], "token=wrong");
+    assert_eq!(r.status, 401);
+    assert!(
+        !r.headers.to_lowercase().contains("set-cookie"),
+        "{}",
+        r.headers
+    );
+    let r = http(port, "POST", "/login", &[form], "token=s3cret");
+    assert_eq!(r.status, 303, "{}", r.headers);
+    let cookie = r
+        .headers
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("set-cookie: ")
+                .or_else(|| l.strip_prefix("Set-Cookie: "))
+        })
+        .unwrap_or_else(|| panic!("no cookie: {}", r.headers))
+        .to_string();
+    assert!(
+        cookie.contains("HttpOnly") && cookie.contains("SameSite=Strict"),
+        "{cookie}"
+    );
+    let pair = cookie.split(';').next().unwrap();
+    let r = http(port, "GET", "/", &[&format!("Cookie: {pair}")], "");
+    assert_eq!(r.status, 200, "{}", r.body);
+    assert!(r.body.contains("Workers"), "{}", r.body);
+    let r = http(port, "GET", "/", &["Cookie: scatterfarm_token=nope"], "");
+    assert_eq!(r.status, 401);
+
+    // Told not to: open to everyone.
+    let (_open, port) = start(true);
+    let r = http(port, "GET", "/metrics", &[], "");
+    assert_eq!(r.status, 200, "{}", r.body);
 }

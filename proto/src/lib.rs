@@ -16,7 +16,7 @@ pub mod v1 {
     tonic::include_proto!("scatterfarm.v1");
 
     /// The protocol version this build speaks.
-    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 0 };
+    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 1 };
 
     /// Messages up to this size are accepted and sent (a default-size count matrix is 5.3 MB;
     /// a task result carries one per assignment).

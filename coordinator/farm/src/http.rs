@@ -2,15 +2,19 @@
 //! (jobs with progress and ETA, workers with engine, throughput and last heartbeat, each job's
 //! current best map), and `/jobs/{id}/map.png`, the map itself.
 //!
-//! Everything is read from one snapshot of the [`Scheduler`] taken under its lock; pages and metrics
-//! are built after the lock is released.
+//! Everything is read from one snapshot of the [`Scheduler`] taken under its lock; pages, metrics
+//! and maps are built after the lock is released, and a job's map is encoded once per state of
+//! its progress (cached by its renders done). With a token, every path needs it
+//! ([`crate::http_auth`]).
 
 use super::scheduler::Scheduler;
 use super::service::Farm;
-use super::status::{duration_text, job_status, state_name};
+use super::status::{all_statuses, duration_text, state_name};
+use crate::http_auth::{self, WebToken};
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
 use axum::http::{header, StatusCode};
+use axum::middleware;
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
@@ -21,7 +25,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
 use scatterfarm_job::picture;
 use scatterfarm_proto::v1 as pb;
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
@@ -58,10 +62,14 @@ impl Rates {
     }
 }
 
+/// Encoded maps by job: the renders done when encoded, and the PNG.
+type MapCache = HashMap<String, (u64, Arc<Vec<u8>>)>;
+
 #[derive(Clone)]
 struct Web {
     farm: Arc<Farm>,
     rates: Arc<Mutex<Rates>>,
+    maps: Arc<Mutex<MapCache>>,
 }
 
 /// What a page or a scrape shows, copied out of the scheduler.
@@ -105,11 +113,7 @@ fn snapshot(scheduler: &Scheduler) -> Snapshot {
         .collect();
     workers.sort_by(|a, b| a.id.cmp(&b.id));
     Snapshot {
-        jobs: scheduler
-            .jobs
-            .values()
-            .map(|j| job_status(scheduler, j))
-            .collect(),
+        jobs: all_statuses(scheduler),
         workers,
         tasks_leased: scheduler.leases.len(),
         counters: scheduler.counters,
@@ -122,7 +126,15 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
     let mut reg = Registry::with_prefix("scatterfarm");
     let jobs = Family::<Labels, Gauge>::default();
     reg.register("jobs", "Jobs by state", jobs.clone());
-    for state in ["preparing", "searching", "finished", "cancelled", "failed"] {
+    for state in [
+        "preparing",
+        "searching",
+        "paused",
+        "finished",
+        "cancelled",
+        "failed",
+        "damaged",
+    ] {
         let n = s
             .jobs
             .iter()
@@ -373,6 +385,17 @@ async fn index(State(web): State<Web>) -> Html<String> {
     Html(page(&snap, rates))
 }
 
+fn png_response(png: Arc<Vec<u8>>) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, "image/png"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        png.as_ref().clone(),
+    )
+        .into_response()
+}
+
 async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
     let picture = {
         let scheduler = web.farm.scheduler();
@@ -380,13 +403,29 @@ async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
             return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
         };
         let search = &job.checkpoint.search;
+        let done = search.progress().renders_done;
+        let cached = web.maps.lock().ok().and_then(|m| {
+            m.get(&id)
+                .filter(|(at, _)| *at == done)
+                .map(|c| c.1.clone())
+        });
+        if let Some(png) = cached {
+            return png_response(png);
+        }
         let best = search
             .result()
             .map(|r| r.assignment.clone())
             .or_else(|| search.current_best().map(|b| b.0));
-        best.map(|a| (a, job.plan.config.grid as usize, search.table().clone()))
+        best.map(|a| {
+            (
+                a,
+                job.plan.config.grid as usize,
+                search.table().clone(),
+                done,
+            )
+        })
     };
-    let Some((assignment, grid, table)) = picture else {
+    let Some((assignment, grid, table, done)) = picture else {
         return (StatusCode::NOT_FOUND, "nothing scored yet").into_response();
     };
     let img = picture::material_map(&assignment, grid, &table, picture::cell_size(grid).min(32));
@@ -394,23 +433,23 @@ async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
     match image::DynamicImage::ImageRgb8(img)
         .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
     {
-        Ok(()) => (
-            [
-                (header::CONTENT_TYPE, "image/png"),
-                (header::CACHE_CONTROL, "no-store"),
-            ],
-            png,
-        )
-            .into_response(),
+        Ok(()) => {
+            let png = Arc::new(png);
+            if let Ok(mut m) = web.maps.lock() {
+                m.insert(id, (done, png.clone()));
+            }
+            png_response(png)
+        }
         Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()).into_response(),
     }
 }
 
-/// Serves the web face on `addr` until `shutdown` resolves; returns the bound address and the
-/// serving future.
+/// Serves the web face on `addr` until `shutdown` resolves, asking for `token` when it is set;
+/// returns the bound address and the serving future.
 pub async fn start(
     addr: SocketAddr,
     farm: Arc<Farm>,
+    token: Option<String>,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(SocketAddr, impl std::future::Future<Output = Result<()>>)> {
     let rates = Arc::new(Mutex::new(Rates::default()));
@@ -427,11 +466,24 @@ pub async fn start(
             }
         });
     }
-    let app = Router::new()
+    let token = WebToken(token.map(Arc::from));
+    let pages = Router::new()
         .route("/", get(index))
         .route("/metrics", get(metrics))
         .route("/jobs/{id}/map.png", get(map_png))
-        .with_state(Web { farm, rates });
+        .route_layer(middleware::from_fn_with_state(
+            token.clone(),
+            http_auth::require,
+        ))
+        .with_state(Web {
+            farm,
+            rates,
+            maps: Arc::default(),
+        });
+    let login = Router::new()
+        .route("/login", get(http_auth::login_form).post(http_auth::login))
+        .with_state(token);
+    let app = pages.merge(login);
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .with_context(|| format!("cannot listen on {addr} (--http)"))?;

@@ -2,12 +2,14 @@
 //! into render tasks for workers over gRPC, scores what comes back, and keeps its progress in a
 //! store. It renders nothing itself and links no engine.
 //!
-//! - [`store`]: the durable state behind a small trait (sled, with a schema version).
+//! - [`store`]: the durable state behind a small trait (sled on disk with a schema version; in
+//!   memory with injected faults, for tests).
 //! - [`work`]: render groups cut into photon-range pieces, with partial counts summed.
 //! - [`job`]: one job, one file per concern: record, durable progress, pinning, planning
 //!   through the search's step driver, setup completion, outputs, pace.
 //! - [`scheduler`]: the [`scheduler::Scheduler`]: jobs, the worker registry and leases, one file
-//!   per concern (client requests, registry, leasing, lease sizing, result checks, expiry).
+//!   per concern (client requests, registry, leasing, lease sizing, result checks, expiry,
+//!   attempt caps, strikes, restoring paused and listing damaged jobs).
 //! - [`service`]: the [`service::Farm`] both services share, and the `WorkerService` and
 //!   `ClientService` gRPC implementations (one file each); every message ⇄ model conversion is
 //!   `scatterfarm_proto::convert`'s.
@@ -15,8 +17,10 @@
 //!   name of each job state.
 //! - [`server`]: serving them with TLS, token, health, reflection and a graceful drain.
 //! - [`http`]: the web face: Prometheus metrics and a status page.
+//! - [`http_auth`]: the web face's token check (bearer header or a cookie set at `/login`).
 
 pub mod http;
+pub mod http_auth;
 pub mod job;
 pub mod scheduler;
 pub mod server;

@@ -2,11 +2,14 @@
 //! `JobStatus`), and the one name of each job state.
 
 use crate::job::{Job, JobState};
-use crate::scheduler::Scheduler;
+use crate::scheduler::{Refusal, Scheduler};
 use scatterfarm_proto::v1 as pb;
 
 /// The protocol's state of a job.
 fn state_of(job: &Job) -> pb::JobState {
+    if job.is_paused() {
+        return pb::JobState::Paused;
+    }
     match job.checkpoint.state {
         JobState::Preparing => pb::JobState::Preparing,
         JobState::Searching => pb::JobState::Searching,
@@ -21,6 +24,11 @@ pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
     let p = job.checkpoint.search.progress();
     let (rate, eta) = job.pace();
     let message = match &job.checkpoint.state {
+        _ if job.is_paused() => job
+            .paused
+            .as_ref()
+            .map(|p| p.reason.clone())
+            .unwrap_or_default(),
         JobState::Failed { message } => message.clone(),
         JobState::Preparing => scheduler
             .waiting_reason(job)
@@ -52,6 +60,44 @@ pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
     }
 }
 
+/// The status of job `id`, damaged or not.
+pub fn status_of(scheduler: &Scheduler, id: &str) -> Result<pb::JobStatus, Refusal> {
+    if let Some(why) = scheduler.damaged.get(id) {
+        return Ok(damaged_status(id, why));
+    }
+    Ok(job_status(scheduler, scheduler.job(id)?))
+}
+
+/// Every job's status, damaged ones included, by id.
+pub fn all_statuses(scheduler: &Scheduler) -> Vec<pb::JobStatus> {
+    let mut all: Vec<pb::JobStatus> = scheduler
+        .jobs
+        .values()
+        .map(|j| job_status(scheduler, j))
+        .chain(
+            scheduler
+                .damaged
+                .iter()
+                .map(|(id, why)| damaged_status(id, why)),
+        )
+        .collect();
+    all.sort_by(|a, b| a.job_id.cmp(&b.job_id));
+    all
+}
+
+/// A stored job that cannot be read.
+fn damaged_status(id: &str, why: &str) -> pb::JobStatus {
+    pb::JobStatus {
+        job_id: id.to_string(),
+        name: id.to_string(),
+        state: pb::JobState::Damaged as i32,
+        message: format!("damaged: {why}; `scatterfarm delete {id}` removes it"),
+        best_similarity: f64::NAN,
+        eta_seconds: -1.0,
+        ..Default::default()
+    }
+}
+
 /// A job state's name in listings and pages.
 pub fn state_name(state: i32) -> &'static str {
     match pb::JobState::try_from(state) {
@@ -60,6 +106,8 @@ pub fn state_name(state: i32) -> &'static str {
         Ok(pb::JobState::Finished) => "finished",
         Ok(pb::JobState::Cancelled) => "cancelled",
         Ok(pb::JobState::Failed) => "failed",
+        Ok(pb::JobState::Paused) => "paused",
+        Ok(pb::JobState::Damaged) => "damaged",
         _ => "unknown",
     }
 }
@@ -73,10 +121,13 @@ pub fn duration_text(seconds: f64) -> String {
     format!("{}:{:02}:{:02}", t / 3600, t / 60 % 60, t % 60)
 }
 
-/// Whether a status is final (finished, cancelled or failed).
+/// Whether a status is final (finished, cancelled, failed or damaged).
 pub fn is_terminal(s: &pb::JobStatus) -> bool {
     matches!(
         pb::JobState::try_from(s.state),
-        Ok(pb::JobState::Finished | pb::JobState::Cancelled | pb::JobState::Failed)
+        Ok(pb::JobState::Finished
+            | pb::JobState::Cancelled
+            | pb::JobState::Failed
+            | pb::JobState::Damaged)
     )
 }

@@ -50,8 +50,14 @@ pub struct CoordinatorArgs {
     pub drain_seconds: f64,
     /// Serve the status page (`/`) and Prometheus metrics (`/metrics`) over HTTP on this
     /// address, e.g. 0.0.0.0:8080 (off unless given).
+    /// With a token, every path of it needs the token: an `Authorization: Bearer` header (as
+    /// Prometheus sends it) or a cookie a browser gets at `/login`. It is plain HTTP: bind it
+    /// to loopback, or put a TLS proxy in front, when the token must not cross a network.
     #[arg(long)]
     pub http: Option<SocketAddr>,
+    /// Serve --http without asking for the token (anyone who reaches it sees every job).
+    #[arg(long)]
+    pub http_open: bool,
     /// Write the coordinator's URL to this file once it listens (for scripts; with --listen
     /// on port 0 it holds the port chosen).
     #[arg(long)]
@@ -110,6 +116,26 @@ impl CoordinatorArgs {
 pub fn run(args: CoordinatorArgs) -> Result<()> {
     let config = args.config()?;
     let tls = config.tls.is_some();
+    let web_token = if args.http_open {
+        None
+    } else {
+        config.token.clone()
+    };
+    if let Some(addr) = args.http {
+        if !addr.ip().is_loopback() {
+            if web_token.is_none() {
+                tracing::warn!(
+                    "the status page on {addr} asks for no token: anyone who can reach it sees \
+                     every job"
+                );
+            } else {
+                tracing::warn!(
+                    "the status page on {addr} is plain HTTP: its token crosses the network in \
+                     the clear (bind it to loopback, or put a TLS proxy in front)"
+                );
+            }
+        }
+    }
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -124,8 +150,13 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                 server::start(config, server::stopped(stop_rx.clone())).await?;
             let web = match args.http {
                 Some(addr) => {
-                    let (bound, web) =
-                        http::start(addr, running.farm.clone(), server::stopped(stop_rx)).await?;
+                    let (bound, web) = http::start(
+                        addr,
+                        running.farm.clone(),
+                        web_token,
+                        server::stopped(stop_rx),
+                    )
+                    .await?;
                     tracing::info!("status page on http://{bound}/ (metrics on /metrics)");
                     Some(tokio::spawn(web))
                 }

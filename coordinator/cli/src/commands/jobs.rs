@@ -255,6 +255,9 @@ pub fn run_watch(args: JobArgs) -> Result<()> {
     if s.state == pb::JobState::Failed as i32 {
         bail!("job {} failed: {}", s.job_id, s.message);
     }
+    if s.state == pb::JobState::Damaged as i32 {
+        bail!("job {} is {}", s.job_id, s.message);
+    }
     Ok(())
 }
 

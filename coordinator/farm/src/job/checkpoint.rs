@@ -79,10 +79,15 @@ impl Checkpoint {
 impl Job {
     /// Adds the time worked since the last write and stores the checkpoint.
     pub(super) fn persist(&mut self, store: &dyn Store) -> Result<()> {
+        self.account_time();
+        self.checkpoint.save(&self.id, store)
+    }
+
+    /// Adds the time since the last account to the job's active seconds.
+    pub(super) fn account_time(&mut self) {
         let now = Instant::now();
         self.checkpoint.active_seconds += now.duration_since(self.last_active).as_secs_f64();
         self.last_active = now;
-        self.checkpoint.save(&self.id, store)
     }
 }
 

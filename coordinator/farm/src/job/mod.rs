@@ -9,6 +9,7 @@
 //! - `setup`: the setup's end (ε and the target), and its scoring rebuilt on restore.
 //! - `outputs`: the files `reconstruct` writes, made and stored.
 //! - `pace`: photons per second and the time left.
+//! - [`faults`]: a job paused when the store fails, and restored from it.
 //!
 //! A job moves Preparing (target and ε calibration renders) → Searching (one group per search
 //! step, holding the step's renders that have no cached score) → Finished. Every transition is
@@ -17,6 +18,7 @@
 //! result of an uninterrupted run.
 
 pub mod checkpoint;
+pub mod faults;
 mod outputs;
 mod pace;
 pub mod pinning;
@@ -61,6 +63,8 @@ pub struct Job {
     /// Photons (all sources) summed in this run.
     pub session_photons: u64,
     last_active: Instant,
+    /// Set while the job waits to be restored after a store fault.
+    pub paused: Option<faults::Pause>,
 }
 
 impl Job {
@@ -145,6 +149,7 @@ impl Job {
             session_renders_start: renders,
             session_photons: 0,
             last_active: Instant::now(),
+            paused: None,
         }
     }
 
@@ -192,11 +197,13 @@ impl Job {
         Ok(())
     }
 
-    /// Marks the job finished, stores that and its outputs.
+    /// Marks the job finished and stores its outputs, then that it finished: a stored finished
+    /// job always has its outputs.
     fn finish(&mut self, store: &dyn Store) -> Result<()> {
         self.checkpoint.state = JobState::Finished;
-        self.persist(store)?;
+        self.account_time();
         self.store_outputs(store)?;
+        self.checkpoint.save(&self.id, store)?;
         tracing::info!(
             "job {} finished: similarity {:.4}",
             self.id,

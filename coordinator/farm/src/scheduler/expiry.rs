@@ -7,8 +7,9 @@ use std::time::Instant;
 
 impl Scheduler {
     /// Hands out again the leases past their deadline or of workers that stopped sending
-    /// heartbeats, and forgets those workers.
+    /// heartbeats, and forgets those workers; restores the paused jobs that waited enough.
     pub fn sweep(&mut self, now: Instant) {
+        self.restore_paused(now);
         let silent_after = self.settings.heartbeat * self.settings.missed_heartbeats;
         let gone: Vec<String> = self
             .workers

@@ -72,7 +72,7 @@ impl Scheduler {
         );
         let id = job.id.clone();
         if let Err(e) = job.fail(message, store.as_ref()) {
-            tracing::error!("cannot store the failure of job {id}: {e:#}");
+            job.pause(&e);
         }
         self.leases.retain(|_, l| l.job != id);
     }

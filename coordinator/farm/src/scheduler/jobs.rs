@@ -30,6 +30,11 @@ impl Scheduler {
 
     /// Stops a job; leases of it are refused when they come back.
     pub fn cancel(&mut self, id: &str) -> Result<(), Refusal> {
+        if let Some(why) = self.damaged.get(id) {
+            return Err(Refusal::Invalid(format!(
+                "job {id} is damaged ({why}): it can only be deleted"
+            )));
+        }
         let store = self.store.clone();
         self.job_mut(id)?.cancel(store.as_ref())?;
         self.leases.retain(|_, l| l.job != id);
@@ -39,6 +44,9 @@ impl Scheduler {
 
     /// Removes a job and everything stored of it (cancelling it first if it runs).
     pub fn delete(&mut self, id: &str) -> Result<(), Refusal> {
+        if self.damaged.contains_key(id) {
+            return self.delete_damaged(id);
+        }
         self.cancel(id)?;
         self.jobs.remove(id);
         self.store.delete_job(id).map_err(anyhow::Error::from)?;
@@ -51,6 +59,9 @@ impl Scheduler {
     pub fn waiting_reason(&self, job: &Job) -> Option<String> {
         if !job.is_active() {
             return None;
+        }
+        if let Some(p) = &job.paused {
+            return Some(p.reason.clone());
         }
         if self.leases.values().any(|l| l.job == job.id) {
             return None;

@@ -66,7 +66,7 @@ impl Scheduler {
             let Some(job) = self.jobs.get_mut(id) else {
                 continue;
             };
-            if !job.is_active() {
+            if !job.is_active() || job.is_paused() {
                 continue;
             }
             if !job.accepts(&worker.fingerprint_key) {
@@ -79,7 +79,10 @@ impl Scheduler {
             }
             if job.checkpoint.pinned.is_none() {
                 tracing::info!("job {id} pinned to {}", worker.fingerprint_key);
-                job.pin(&worker.fingerprint_key, store.as_ref())?;
+                if let Err(e) = job.pin(&worker.fingerprint_key, store.as_ref()) {
+                    job.on_error(e, store.as_ref());
+                    continue;
+                }
             }
             let mut new_group = || {
                 let g = *next_group;
@@ -87,8 +90,7 @@ impl Scheduler {
                 g
             };
             if let Err(e) = job.plan_work(&mut new_group, store.as_ref()) {
-                let msg = format!("{e:#}");
-                job.fail(msg, store.as_ref())?;
+                job.on_error(e, store.as_ref());
                 continue;
             }
             let Some(group) = job.groups.iter_mut().find(|g| g.has_work()) else {

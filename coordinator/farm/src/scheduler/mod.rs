@@ -16,12 +16,14 @@
 //! - [`expiry`]: leases past their deadline and silent workers.
 //! - [`giveback`]: pieces that come back without a result, and the attempt cap.
 //! - [`strikes`]: bad results per job and worker identity, stored with the job.
+//! - [`restore`]: paused jobs restored from the store, and damaged ones.
 
 mod expiry;
 mod giveback;
 mod jobs;
 mod lease;
 mod registry;
+mod restore;
 mod results;
 mod sizing;
 mod strikes;
@@ -103,6 +105,8 @@ pub struct Scheduler {
     store: Arc<dyn Store>,
     pub settings: Settings,
     pub jobs: BTreeMap<String, Job>,
+    /// Stored jobs that cannot be read, with why: listed, and deletable, nothing else.
+    pub damaged: BTreeMap<String, String>,
     pub workers: HashMap<String, WorkerEntry>,
     /// By task id.
     pub leases: HashMap<u64, Lease>,
@@ -129,6 +133,7 @@ impl Scheduler {
     /// Loads every stored job; unfinished ones resume.
     pub fn open(store: Arc<dyn Store>, settings: Settings) -> Result<Scheduler> {
         let mut jobs = BTreeMap::new();
+        let mut damaged = BTreeMap::new();
         for (id, record) in store.records()? {
             match Job::restore(id.clone(), &record, store.as_ref()) {
                 Ok(job) => {
@@ -141,7 +146,10 @@ impl Scheduler {
                     }
                     jobs.insert(id, job);
                 }
-                Err(e) => tracing::error!("cannot load job {id}: {e:#}"),
+                Err(e) => {
+                    tracing::error!("cannot load job {id}: {e:#}; listed as damaged");
+                    damaged.insert(id, format!("{e:#}"));
+                }
             }
         }
         let strikes = Strikes::load(store.as_ref(), jobs.keys());
@@ -149,6 +157,7 @@ impl Scheduler {
             store,
             settings,
             jobs,
+            damaged,
             workers: HashMap::new(),
             leases: HashMap::new(),
             strikes,

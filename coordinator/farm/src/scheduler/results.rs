@@ -151,7 +151,10 @@ impl Scheduler {
             let group: RenderGroup = job.groups.remove(pos);
             self.counters.renders_completed += group.items.len() as u64;
             if let Err(e) = job.group_complete(group, &mut new_group, store.as_ref()) {
-                job.fail(format!("{e:#}"), store.as_ref())?;
+                job.on_error(e, store.as_ref());
+                if !job.is_active() || job.is_paused() {
+                    self.leases.retain(|_, l| l.job != job_id);
+                }
             }
         }
         Ok(())

@@ -3,7 +3,7 @@
 
 use super::Farm;
 use crate::job::JobState;
-use crate::status::{is_terminal, job_status};
+use crate::status::{all_statuses, is_terminal, job_status, status_of};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::convert::fingerprint_to_proto;
@@ -46,8 +46,10 @@ impl ClientService for ClientApi {
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::JobStatus>, Status> {
         let scheduler = self.0.scheduler();
-        let job = scheduler.job(&request.into_inner().job_id)?;
-        Ok(Response::new(job_status(&scheduler, job)))
+        Ok(Response::new(status_of(
+            &scheduler,
+            &request.into_inner().job_id,
+        )?))
     }
 
     type WatchStream = StatusStream;
@@ -58,7 +60,7 @@ impl ClientService for ClientApi {
         // Fail now if the job does not exist.
         {
             let scheduler = farm.scheduler();
-            scheduler.job(&id)?;
+            status_of(&scheduler, &id)?;
         }
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
@@ -66,10 +68,7 @@ impl ClientService for ClientApi {
             loop {
                 let status = {
                     let scheduler = farm.scheduler();
-                    match scheduler.job(&id) {
-                        Ok(job) => Ok(job_status(&scheduler, job)),
-                        Err(r) => Err(Status::from(r)),
-                    }
+                    status_of(&scheduler, &id).map_err(Status::from)
                 };
                 let end = match &status {
                     Ok(s) => is_terminal(s),
@@ -139,12 +138,7 @@ impl ClientService for ClientApi {
         &self,
         _request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let scheduler = self.0.scheduler();
-        let jobs = scheduler
-            .jobs
-            .values()
-            .map(|j| job_status(&scheduler, j))
-            .collect();
+        let jobs = all_statuses(&self.0.scheduler());
         Ok(Response::new(pb::ListJobsResponse { jobs }))
     }
 
