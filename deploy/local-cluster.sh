@@ -269,7 +269,9 @@ done
 log "all $workers workers registered"
 
 if command -v curl >/dev/null; then
-    ip netns exec "$tag-client" curl -fsS --max-time 10 "http://$coord_ip:8080/metrics" >"$work/metrics.txt" ||
+    # /metrics asks for the token, as Prometheus sends it.
+    ip netns exec "$tag-client" curl -fsS --max-time 10 -H "Authorization: Bearer $(cat "$token")" \
+        "http://$coord_ip:8080/metrics" >"$work/metrics.txt" ||
         die "the coordinator's HTTP /metrics did not answer"
     log "HTTP /metrics answered ($(wc -l <"$work/metrics.txt") lines)"
 fi
