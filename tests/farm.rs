@@ -533,6 +533,22 @@ fn a_task_that_never_comes_back_fails_its_job_naming_it_and_task_ids_are_never_r
 }
 
 #[test]
+fn a_job_past_the_coordinators_photon_budget_fails_saying_so() {
+    let mut farm = Farm::start(&["--task-seconds", "0.05", "--max-job-photons", "100000"]);
+    farm.start_worker("a", &[]);
+    let id = farm.submit();
+    let s = farm.wait_for(&id, "its end", |s| {
+        s["state"] != "preparing" && s["state"] != "searching"
+    });
+    assert_eq!(s["state"], "failed", "{s:#}");
+    let message = s["message"].as_str().unwrap_or_default();
+    assert!(
+        message.contains("--max-job-photons") && message.contains("100000"),
+        "{s:#}"
+    );
+}
+
+#[test]
 fn malformed_job_files_are_refused_and_nothing_is_stored() {
     let farm = Farm::start(&[]);
     let good = job_toml();

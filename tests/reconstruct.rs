@@ -474,3 +474,40 @@ fn a_hostile_npy_header_is_refused_not_allocated() {
         "{err}"
     );
 }
+
+/// Issue 17, cost limits: too many sources for a result to carry, and a material too thick to
+/// render, are refused before anything renders, naming what and the limit; nothing is written.
+#[test]
+fn jobs_past_the_cost_limits_are_refused_naming_the_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            "sources.toml",
+            "[geometry]\ngrid = 2\npositions = 64\ndirections = 33\n[map]\nlegend = { \".\" = \"moderate\" }\nrows = [\"..\", \"..\"]\n",
+            ["2112 sources", "at most 2048"],
+        ),
+        (
+            "thick.toml",
+            "[geometry]\ngrid = 2\npositions = 16\ndirections = 3\n[materials]\nbrick = { sigma_s = 5000.0, sigma_a = 0.1, g = 0.0 }\n[map]\nlegend = { \".\" = \"moderate\", \"b\" = \"brick\" }\nrows = [\".b\", \"..\"]\n",
+            ["\"brick\"", "limit is 1000"],
+        ),
+    ];
+    for (file, text, expected) in cases {
+        std::fs::write(dir.path().join(file), text).unwrap();
+        let mut cmd = scatterfarm();
+        cmd.current_dir(dir.path()).args([
+            "reconstruct",
+            "--scene",
+            file,
+            "--engine",
+            "cpu",
+            "--out",
+            "o",
+        ]);
+        let err = output(cmd).fails();
+        for e in expected {
+            assert!(err.contains(e), "{file}: {e:?} missing from: {err}");
+        }
+        assert!(!dir.path().join("o").exists(), "{file}: output written");
+    }
+}

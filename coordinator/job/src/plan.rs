@@ -16,6 +16,7 @@ use scatterfarm_search::similarity::{self, Metric, Target};
 use scatterfarm_search::Search;
 use std::collections::BTreeMap;
 
+pub mod limits;
 mod resolve;
 
 pub use resolve::parse_bounds;

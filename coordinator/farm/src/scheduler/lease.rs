@@ -77,6 +77,18 @@ impl Scheduler {
                 );
                 continue;
             }
+            let budget = self.settings.max_job_photons;
+            if job.checkpoint.photons_simulated > budget {
+                let message = format!(
+                    "the job simulated {} photons, more than this coordinator's budget of {budget} \
+                     per job (--max-job-photons)",
+                    job.checkpoint.photons_simulated
+                );
+                if let Err(e) = job.fail(message, store.as_ref()) {
+                    job.pause(&e);
+                }
+                continue;
+            }
             if job.checkpoint.pinned.is_none() {
                 tracing::info!("job {id} pinned to {}", worker.fingerprint_key);
                 if let Err(e) = job.pin(&worker.fingerprint_key, store.as_ref()) {

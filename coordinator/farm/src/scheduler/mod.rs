@@ -55,6 +55,8 @@ pub struct Settings {
     /// Leases of one piece before its job fails (a piece that expires, is given back or whose
     /// result is refused is leased again, up to this many times in all).
     pub max_attempts: u32,
+    /// Photons (all sources) a job may simulate; past it, the job fails saying so.
+    pub max_job_photons: u64,
 }
 
 impl Default for Settings {
@@ -65,6 +67,7 @@ impl Default for Settings {
             missed_heartbeats: 3,
             min_lease: Duration::from_secs(30),
             max_attempts: 8,
+            max_job_photons: 1_000_000_000_000,
         }
     }
 }

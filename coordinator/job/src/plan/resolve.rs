@@ -2,7 +2,7 @@
 //! the candidates, the calibration material, the target, and the search and its report
 //! configuration. The steps run in this order, so the first problem found is the one reported.
 
-use super::{Plan, TargetSource};
+use super::{limits, Plan, TargetSource};
 use crate::inputs::Inputs;
 use crate::observation::Sidecar;
 use crate::options::SearchOptions;
@@ -91,7 +91,13 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
     let search_photons = budget.photons_per_source()?;
     let (mut truth, target_file) = named_inputs(spec, inputs)?;
     let geometries = geometries(spec, truth.as_mut(), target_file.as_ref())?;
+    limits::check_sources("geometry", &geometries.target)?;
     let (table, dictionary, candidates) = candidates(spec, truth.as_ref())?;
+    let size_mm = geometries.target.size_mm;
+    limits::check_thickness("the search's materials", &table, size_mm)?;
+    if let Some(t) = &truth {
+        limits::check_thickness("the scene", &t.table, size_mm)?;
+    }
     let (calibration_name, calibration_material) =
         calibration_material(spec, dictionary.is_some(), &table, truth.as_ref())?;
     let target = target(spec, inputs, truth.is_some(), target_file, search_photons)?;
