@@ -2,18 +2,31 @@
 
 use super::{Refusal, Scheduler};
 use crate::job::Job;
+use crate::store::Store;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
 
+/// Validates a submission and stores it under a new id (no lock needed: the store is shared).
+pub fn stored_job(store: &dyn Store, params: JobSpec, inputs: Inputs) -> Result<Job, Refusal> {
+    let id = store.new_job_id().map_err(anyhow::Error::from)?;
+    Job::submit(id, params, inputs, store).map_err(|e| Refusal::Invalid(format!("{e:#}")))
+}
+
 impl Scheduler {
-    /// Validates and stores a job; returns its id.
+    /// Validates and stores a job; returns its id. The gRPC service does the two halves apart
+    /// ([`stored_job`], then [`Self::add_job`] under the lock), so that parsing a submission and
+    /// writing its files never holds the scheduler's lock.
     pub fn submit(&mut self, params: JobSpec, inputs: Inputs) -> Result<String, Refusal> {
-        let id = self.store.new_job_id().map_err(anyhow::Error::from)?;
-        let job = Job::submit(id.clone(), params, inputs, self.store.as_ref())
-            .map_err(|e| Refusal::Invalid(format!("{e:#}")))?;
+        let job = stored_job(self.store.as_ref(), params, inputs)?;
+        Ok(self.add_job(job))
+    }
+
+    /// Adds a job [`stored_job`] made; its id.
+    pub fn add_job(&mut self, job: Job) -> String {
+        let id = job.id.clone();
         tracing::info!("job {id} submitted ({})", job.name());
         self.jobs.insert(id.clone(), job);
-        Ok(id)
+        id
     }
 
     pub fn job(&self, id: &str) -> Result<&Job, Refusal> {

@@ -28,6 +28,7 @@ mod results;
 mod sizing;
 mod strikes;
 
+pub use jobs::stored_job;
 pub use lease::{Lease, TaskOut};
 pub use registry::WorkerEntry;
 pub use results::Rendered;
@@ -175,5 +176,9 @@ impl Scheduler {
 
     pub fn store(&self) -> &dyn Store {
         self.store.as_ref()
+    }
+
+    pub fn store_arc(&self) -> Arc<dyn Store> {
+        self.store.clone()
     }
 }

@@ -3,6 +3,7 @@
 
 use super::Farm;
 use crate::job::JobState;
+use crate::scheduler::stored_job;
 use crate::status::{all_statuses, is_terminal, job_status, status_of};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
@@ -34,9 +35,12 @@ impl ClientService for ClientApi {
             files: r.files.into_iter().map(|(k, v)| (k, v.to_vec())).collect(),
         };
         let farm = self.0.clone();
-        let id = tokio::task::spawn_blocking(move || farm.scheduler().submit(params, inputs))
-            .await
-            .map_err(|e| Status::internal(format!("the submission handler failed: {e}")))??;
+        // Parsing and storing happen outside the scheduler's lock; only the insert takes it.
+        let id = tokio::task::spawn_blocking(move || {
+            stored_job(farm.store.as_ref(), params, inputs).map(|job| farm.scheduler().add_job(job))
+        })
+        .await
+        .map_err(|e| Status::internal(format!("the submission handler failed: {e}")))??;
         self.0.work.notify_waiters();
         Ok(Response::new(pb::SubmitResponse { job_id: id }))
     }

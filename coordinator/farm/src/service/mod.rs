@@ -13,6 +13,7 @@ pub use client::ClientApi;
 pub use worker::WorkerApi;
 
 use crate::scheduler::{Refusal, Scheduler};
+use crate::store::Store;
 use std::sync::{Arc, Mutex, MutexGuard};
 use tokio::sync::Notify;
 use tonic::Status;
@@ -20,6 +21,9 @@ use tonic::Status;
 /// The coordinator shared by both services and the background sweeper.
 pub struct Farm {
     scheduler: Mutex<Scheduler>,
+    /// The scheduler's store, for work done outside its lock (a submission's parsing and
+    /// writes).
+    pub store: Arc<dyn Store>,
     /// Woken when work may have appeared (a submission, a piece given back, a group done).
     pub work: Notify,
 }
@@ -27,6 +31,7 @@ pub struct Farm {
 impl Farm {
     pub fn new(scheduler: Scheduler) -> Arc<Farm> {
         Arc::new(Farm {
+            store: scheduler.store_arc(),
             scheduler: Mutex::new(scheduler),
             work: Notify::new(),
         })
