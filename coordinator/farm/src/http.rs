@@ -257,7 +257,13 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
 }
 
 async fn metrics(State(web): State<Web>) -> Response {
-    let snap = snapshot(&web.farm.scheduler());
+    let Ok(snap) = web.farm.locked(|s| snapshot(s)).await else {
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            "the coordinator is shutting down",
+        )
+            .into_response();
+    };
     let rates = web
         .rates
         .lock()
@@ -376,7 +382,9 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
 }
 
 async fn index(State(web): State<Web>) -> Html<String> {
-    let snap = snapshot(&web.farm.scheduler());
+    let Ok(snap) = web.farm.locked(|s| snapshot(s)).await else {
+        return Html("the coordinator is shutting down".into());
+    };
     let rates = web
         .rates
         .lock()

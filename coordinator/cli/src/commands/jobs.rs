@@ -39,7 +39,15 @@ pub fn status_error(what: &str, s: tonic::Status) -> anyhow::Error {
     } else {
         ""
     };
-    anyhow::anyhow!("{what}: {} ({:?}){hint}", s.message(), s.code())
+    // The transport's own causes (an h2 GOAWAY, a reset, a keep-alive timeout) say more than
+    // "http2 error".
+    let mut causes = String::new();
+    let mut source = std::error::Error::source(&s);
+    while let Some(e) = source {
+        causes.push_str(&format!(": {e}"));
+        source = e.source();
+    }
+    anyhow::anyhow!("{what}: {}{causes} ({:?}){hint}", s.message(), s.code())
 }
 
 #[derive(Debug, Clone, Args)]

@@ -49,11 +49,9 @@ impl ClientService for ClientApi {
         &self,
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::JobStatus>, Status> {
-        let scheduler = self.0.scheduler();
-        Ok(Response::new(status_of(
-            &scheduler,
-            &request.into_inner().job_id,
-        )?))
+        let id = request.into_inner().job_id;
+        let status = self.0.locked(move |s| status_of(s, &id)).await??;
+        Ok(Response::new(status))
     }
 
     type WatchStream = StatusStream;
@@ -70,9 +68,10 @@ impl ClientService for ClientApi {
         tokio::spawn(async move {
             let mut last: Option<pb::JobStatus> = None;
             loop {
-                let status = {
-                    let scheduler = farm.scheduler();
-                    status_of(&scheduler, &id).map_err(Status::from)
+                let id = id.clone();
+                let status = match farm.locked(move |s| status_of(s, &id)).await {
+                    Ok(s) => s.map_err(Status::from),
+                    Err(e) => Err(e),
                 };
                 let end = match &status {
                     Ok(s) => is_terminal(s),
@@ -126,7 +125,8 @@ impl ClientService for ClientApi {
         &self,
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::CancelResponse>, Status> {
-        self.0.scheduler().cancel(&request.into_inner().job_id)?;
+        let id = request.into_inner().job_id;
+        self.0.locked(move |s| s.cancel(&id)).await??;
         Ok(Response::new(pb::CancelResponse {}))
     }
 
@@ -134,7 +134,8 @@ impl ClientService for ClientApi {
         &self,
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::DeleteResponse>, Status> {
-        self.0.scheduler().delete(&request.into_inner().job_id)?;
+        let id = request.into_inner().job_id;
+        self.0.locked(move |s| s.delete(&id)).await??;
         Ok(Response::new(pb::DeleteResponse {}))
     }
 
@@ -142,7 +143,7 @@ impl ClientService for ClientApi {
         &self,
         _request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let jobs = all_statuses(&self.0.scheduler());
+        let jobs = self.0.locked(|s| all_statuses(s)).await?;
         Ok(Response::new(pb::ListJobsResponse { jobs }))
     }
 

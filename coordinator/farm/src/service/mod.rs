@@ -38,8 +38,22 @@ impl Farm {
     }
 
     /// The scheduler, even if a panic poisoned the lock (the state stays consistent per call).
+    /// Async code uses [`Self::locked`] instead, so no runtime thread waits on the lock.
     pub fn scheduler(&self) -> MutexGuard<'_, Scheduler> {
         self.scheduler.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Runs `f` on the scheduler from a blocking thread. An async thread that waited on the
+    /// lock while results were being scored could not answer its connections' HTTP/2 pings,
+    /// and under load clients then dropped the connection ("keep-alive timed out").
+    pub async fn locked<T: Send + 'static>(
+        self: &Arc<Self>,
+        f: impl FnOnce(&mut Scheduler) -> T + Send + 'static,
+    ) -> Result<T, Status> {
+        let farm = self.clone();
+        tokio::task::spawn_blocking(move || f(&mut farm.scheduler()))
+            .await
+            .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
     }
 }
 

@@ -59,12 +59,17 @@ impl WorkerService for WorkerApi {
         let f = r.fingerprint.ok_or_else(|| {
             Status::invalid_argument("registration without an engine fingerprint")
         })?;
-        let mut scheduler = self.0.scheduler();
-        if scheduler.draining {
-            return Err(Status::unavailable("the coordinator is draining"));
-        }
-        let id = scheduler.register(r.name, fingerprint_from_proto(f), r.photons_per_second);
-        let heartbeat = scheduler.settings.heartbeat.as_millis() as u32;
+        let (id, heartbeat) = self
+            .0
+            .locked(move |scheduler| {
+                if scheduler.draining {
+                    return Err(Status::unavailable("the coordinator is draining"));
+                }
+                let id =
+                    scheduler.register(r.name, fingerprint_from_proto(f), r.photons_per_second);
+                Ok((id, scheduler.settings.heartbeat.as_millis() as u32))
+            })
+            .await??;
         Ok(Response::new(pb::RegisterResponse {
             worker_id: id,
             heartbeat_interval_ms: heartbeat,
@@ -75,10 +80,8 @@ impl WorkerService for WorkerApi {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        let known = self
-            .0
-            .scheduler()
-            .heartbeat(&request.into_inner().worker_id);
+        let worker = request.into_inner().worker_id;
+        let known = self.0.locked(move |s| s.heartbeat(&worker)).await?;
         Ok(Response::new(pb::HeartbeatResponse { known }))
     }
 
@@ -92,7 +95,8 @@ impl WorkerService for WorkerApi {
         let until = Instant::now() + Duration::from_secs(1);
         loop {
             let notified = self.0.work.notified();
-            let outcome = self.0.scheduler().lease(&r.worker_id)?;
+            let worker = r.worker_id.clone();
+            let outcome = self.0.locked(move |s| s.lease(&worker)).await??;
             match outcome {
                 Ok(task) => {
                     return Ok(Response::new(pb::LeaseResponse {
@@ -148,8 +152,8 @@ impl WorkerService for WorkerApi {
     ) -> Result<Response<pb::ReleaseResponse>, Status> {
         let r = request.into_inner();
         self.0
-            .scheduler()
-            .release(&r.worker_id, &r.job_id, r.task_id, r.attempt, &r.reason)?;
+            .locked(move |s| s.release(&r.worker_id, &r.job_id, r.task_id, r.attempt, &r.reason))
+            .await??;
         self.0.work.notify_waiters();
         Ok(Response::new(pb::ReleaseResponse {}))
     }
