@@ -251,7 +251,8 @@ struct LevelState {
     current_score: Option<f64>,
     /// The best final `M^R` of the permutations so far.
     best: Option<LevelResult>,
-    /// Every finished permutation's final `M^R` (for re-scoring).
+    /// The distinct final maps `M^R` of the finished permutations, each as it first came (for
+    /// re-scoring).
     finals: Vec<LevelResult>,
     /// With early step 2 and per-request seeds: the index of this permutation's first
     /// `M⁰`-variant request, whose seeds the steps reuse.
@@ -847,7 +848,12 @@ impl Search {
         if s.best.as_ref().is_none_or(|b| score > b.score) {
             s.best = Some(last.clone());
         }
-        s.finals.push(last);
+        // Only the first of equal maps: re-scoring takes the distinct finalists, first
+        // occurrence first, so the result is the same, and the checkpoint written after every
+        // step no longer grows with every permutation finished.
+        if !s.finals.iter().any(|f| f.assignment == last.assignment) {
+            s.finals.push(last);
+        }
         s.permutation += 1;
         if s.permutation < self.permutations_of(s.level) {
             self.state = Some(s);
