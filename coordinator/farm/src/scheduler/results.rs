@@ -3,6 +3,7 @@
 //! complete group is scored and advances its job.
 
 use super::giveback::Returned;
+use super::sizing::photons_per_launch;
 use super::{Lease, Refusal, Scheduler, STRIKES};
 use crate::work::RenderGroup;
 use scatterfarm_model::CountMatrix;
@@ -178,11 +179,10 @@ impl Scheduler {
     }
 }
 
-/// Photons one photon index of `job`'s group `group` launches (sources × assignments); 0 when
-/// the group is gone.
+/// Photons one photon index of `job`'s group `group` launches; 0 when the group is gone.
 fn job_photons_per_launch(s: &Scheduler, job: &str, group: u64) -> f64 {
     s.jobs
         .get(job)
         .and_then(|j| j.groups.iter().find(|g| g.id == group))
-        .map_or(0.0, |g| (g.geometry.sources() * g.items.len()) as f64)
+        .map_or(0.0, photons_per_launch)
 }
