@@ -6,6 +6,8 @@
 //! - [`cli`]: render, show, scenes, help and the quality bench;
 //! - [`reconstruct`]: `scatterfarm reconstruct` end to end with the CPU engine;
 //! - [`farm`]: coordinator, workers and clients across processes, and fake workers;
+//! - [`faults`]: several jobs at once, cancel and delete in flight, SIGTERM, two coordinators
+//!   on one data folder, results past their lease;
 //! - [`status_page`]: the coordinator's status page in headless Chromium;
 //! - [`deploy`]: `deploy/local-cluster.sh` in network namespaces.
 
@@ -14,5 +16,6 @@ mod harness;
 mod cli;
 mod deploy;
 mod farm;
+mod faults;
 mod reconstruct;
 mod status_page;

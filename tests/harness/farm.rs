@@ -7,6 +7,7 @@ use super::reference::reference_of;
 use super::scenes::{job_toml, job_toml_of, Search, THREE};
 use serde_json::Value;
 use std::path::PathBuf;
+use std::process::ExitStatus;
 use std::time::{Duration, Instant};
 
 /// The files `scatterfarm result` writes.
@@ -139,6 +140,19 @@ impl Farm {
             proc.log_text()
         );
         proc.kill();
+    }
+
+    /// SIGTERM to the coordinator, which must then exit by itself within `limit` (its drain);
+    /// its exit status. It can be started again on the same folder and port.
+    pub fn terminate_coordinator(&mut self, limit: Duration) -> ExitStatus {
+        let mut proc = self.coordinator.take().expect("no coordinator runs");
+        assert!(
+            proc.running(),
+            "the coordinator had died:\n{}",
+            proc.log_text()
+        );
+        proc.signal("TERM");
+        proc.wait_exit(limit)
     }
 
     /// Starts `scatterfarm worker --engine cpu --name NAME` with the farm's connection flags and

@@ -77,6 +77,16 @@ impl Proc {
         let _ = self.child.wait();
     }
 
+    /// Sends the signal `name` (`TERM`, `INT`, `USR1`) to the process, with `kill -s`.
+    pub fn signal(&self, name: &str) {
+        let pid = self.child.id().to_string();
+        let status = Command::new("kill")
+            .args(["-s", name, &pid])
+            .status()
+            .unwrap_or_else(|e| panic!("cannot run `kill -s {name} {pid}`: {e}"));
+        assert!(status.success(), "`kill -s {name} {pid}` failed: {status}");
+    }
+
     pub fn running(&mut self) -> bool {
         matches!(self.child.try_wait(), Ok(None))
     }

@@ -90,7 +90,19 @@ impl Rpc {
 
     /// Registers a fake worker of this protocol version; its id.
     pub fn register_fake(&self, name: &str) -> String {
-        self.register(pb::PROTOCOL, name)
+        self.register_fake_at(name, 1e6)
+    }
+
+    /// Registers a fake worker announcing `photons_per_second` (a slow one gets small tasks);
+    /// its id.
+    pub fn register_fake_at(&self, name: &str, photons_per_second: f64) -> String {
+        let request = pb::RegisterRequest {
+            protocol: Some(pb::PROTOCOL),
+            fingerprint: Some(cpu_fingerprint()),
+            photons_per_second,
+            name: name.to_string(),
+        };
+        self.worker_call(|mut w| async move { w.register(request).await })
             .unwrap_or_else(|s| panic!("registration refused: {s:?}"))
             .worker_id
     }
@@ -150,6 +162,17 @@ impl Rpc {
 
     /// Gives `task` back, as a worker that leaves or whose engine failed does.
     pub fn release(&self, worker: &str, task: &pb::Task, reason: &str) {
+        self.try_release(worker, task, reason)
+            .unwrap_or_else(|s| panic!("release refused: {s:?}"));
+    }
+
+    /// Gives `task` back; the coordinator's answer.
+    pub fn try_release(
+        &self,
+        worker: &str,
+        task: &pb::Task,
+        reason: &str,
+    ) -> Result<pb::ReleaseResponse, tonic::Status> {
         let request = pb::ReleaseRequest {
             worker_id: worker.to_string(),
             job_id: task.job_id.clone(),
@@ -158,7 +181,6 @@ impl Rpc {
             reason: reason.to_string(),
         };
         self.worker_call(|mut w| async move { w.release(request).await })
-            .unwrap_or_else(|s| panic!("release refused: {s:?}"));
     }
 
     pub fn workers(&self) -> Vec<pb::WorkerStatus> {

@@ -8,7 +8,7 @@ use scatterfarm_coordinator::http;
 use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 #[derive(Debug, Clone, Args)]
@@ -151,8 +151,9 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                 server::termination().await;
                 let _ = stop_tx.send(true);
             });
-            let (running, serving) =
-                server::start(config, server::stopped(stop_rx.clone())).await?;
+            let (running, serving) = server::start(config, server::stopped(stop_rx.clone()))
+                .await
+                .map_err(|e| in_use(e, &args.data))?;
             let web = match args.http {
                 Some(addr) => {
                     let (bound, web) = http::start(
@@ -186,4 +187,20 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
             tracing::info!("coordinator stopped");
             Ok(())
         })
+}
+
+/// `e`, saying so when the data folder's store is locked by another process (sled's own error
+/// is a lock that could not be acquired, with an errno).
+fn in_use(e: anyhow::Error, data: &Path) -> anyhow::Error {
+    let locked = std::fs::File::open(data.join("store").join("db"))
+        .is_ok_and(|f| matches!(f.try_lock(), Err(std::fs::TryLockError::WouldBlock)));
+    if locked {
+        e.context(format!(
+            "the data folder {} is in use by another coordinator (its store is locked): stop \
+             that one first, or give this one another --data",
+            data.display()
+        ))
+    } else {
+        e
+    }
 }
