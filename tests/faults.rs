@@ -1,7 +1,9 @@
 //! Faults beyond a killed process: several jobs at once, jobs cancelled and deleted with their
 //! tasks in flight, SIGTERM to a coordinator and to a worker, a second coordinator on a running
 //! one's data folder, and a result that comes back after its lease expired although its worker
-//! kept sending heartbeats.
+//! kept sending heartbeats: from a fake worker, and from a real one in a network namespace whose
+//! link `tc` slows down (as root with iproute2; skipped loudly otherwise, a failure under
+//! `CI=true`).
 //!
 //! Each ends with the reference result (the job's `materials.npy` byte for byte what
 //! `scatterfarm reconstruct` writes in one process, and the same report) or with a refusal whose
@@ -9,11 +11,13 @@
 //! speaking the protocol from the test, every process killed when the test ends.
 
 use crate::harness::farm::{Farm, JOB_LIMIT, STATUS_POLL};
+use crate::harness::gating::{effective_uid, has_ip, has_tc, skip_or_fail};
 use crate::harness::process::{run, scatterfarm};
 use crate::harness::rpc::{assert_code, dark_counts, Rpc};
 use crate::harness::scenes::{job_toml, Search};
 use scatterfarm_proto::v1 as pb;
 use std::collections::BTreeMap;
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -491,4 +495,180 @@ fn a_result_past_its_lease_is_refused_although_its_worker_sent_heartbeats() {
         log.contains(&expired),
         "{expired:?} is not in the log:\n{log}"
     );
+}
+
+/// Runs `args` to its end; why not, when it fails.
+fn sh(args: &[&str]) -> Result<(), String> {
+    let out = Command::new(args[0])
+        .args(&args[1..])
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|e| format!("cannot run `{}`: {e}", args.join(" ")))?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "`{}` failed ({}): {}",
+            args.join(" "),
+            out.status,
+            String::from_utf8_lossy(&out.stderr).trim()
+        ))
+    }
+}
+
+/// A network namespace cabled to the host by a veth pair (the host's end `host_ip`/30, the
+/// namespace's `eth0` the other address of the /30); deleted, with whatever still runs in it,
+/// when dropped.
+struct Netns {
+    name: String,
+    host_if: String,
+    host_ip: String,
+}
+
+impl Netns {
+    fn create() -> Result<Netns, String> {
+        let pid = std::process::id();
+        let k = pid % 250 + 1;
+        let ns = Netns {
+            name: format!("sf-faults-{pid}"),
+            host_if: format!("sfh{pid}"),
+            host_ip: format!("10.253.{k}.1"),
+        };
+        sh(&["ip", "netns", "add", &ns.name])?;
+        let ns_ip = format!("10.253.{k}.2/30");
+        let host_ip = format!("{}/30", ns.host_ip);
+        let (name, host_if) = (ns.name.as_str(), ns.host_if.as_str());
+        for args in [
+            &[
+                "ip", "link", "add", host_if, "type", "veth", "peer", "name", "eth0", "netns", name,
+            ][..],
+            &["ip", "addr", "add", &host_ip, "dev", host_if],
+            &["ip", "link", "set", host_if, "up"],
+            &["ip", "-n", name, "addr", "add", &ns_ip, "dev", "eth0"],
+            &["ip", "-n", name, "link", "set", "eth0", "up"],
+            &["ip", "-n", name, "link", "set", "lo", "up"],
+        ] {
+            sh(args)?;
+        }
+        Ok(ns)
+    }
+
+    /// Shapes what leaves the namespace: `tc qdisc add dev eth0 root QDISC…` in it.
+    fn shape(&self, qdisc: &[&str]) -> Result<(), String> {
+        let mut args = vec!["ip", "netns", "exec", &self.name, "tc", "qdisc", "add"];
+        args.extend(["dev", "eth0", "root"]);
+        args.extend(qdisc);
+        sh(&args)
+    }
+}
+
+impl Drop for Netns {
+    fn drop(&mut self) {
+        if let Ok(out) = Command::new("ip")
+            .args(["netns", "pids", &self.name])
+            .output()
+        {
+            for pid in String::from_utf8_lossy(&out.stdout).split_whitespace() {
+                let _ = sh(&["kill", "-9", pid]);
+            }
+        }
+        // Deleting the namespace deletes its end of the pair, and with it the host's.
+        let _ = sh(&["ip", "netns", "del", &self.name]);
+        let _ = sh(&["ip", "link", "del", &self.host_if]);
+    }
+}
+
+fn skip_partition(why: &str) {
+    skip_or_fail(
+        "faults::a_worker_on_a_slow_link_loses_the_results_that_outlast_their_lease",
+        why,
+        "run the tests as root with iproute2 (ip, tc) and the kernel's tbf qdisc",
+    );
+}
+
+#[test]
+fn a_worker_on_a_slow_link_loses_the_results_that_outlast_their_lease() {
+    match effective_uid() {
+        Some(0) => {}
+        Some(uid) => return skip_partition(&format!("not root (uid {uid})")),
+        None => return skip_partition("cannot tell whether this runs as root"),
+    }
+    if !has_ip() || !has_tc() {
+        return skip_partition("iproute2's `ip` or `tc` is not on PATH");
+    }
+    let ns = match Netns::create() {
+        Ok(ns) => ns,
+        Err(why) => return skip_partition(&format!("cannot build a network namespace: {why}")),
+    };
+    // What the far worker sends crawls at 250 bytes/s: a result (a kilobyte or more of
+    // compressed counts) takes seconds, past its lease of 1 s, yet far less than the 30 s of
+    // silence (3 heartbeats of 10 s) after which a worker is forgotten. Heartbeats share the
+    // result's connection (one HTTP/2 channel), so they wait behind it: no link can pass them
+    // and stop results for longer than that.
+    if let Err(why) = ns.shape(&["tbf", "rate", "2kbit", "burst", "1600", "limit", "200000"]) {
+        return skip_partition(&format!("cannot shape the link: {why}"));
+    }
+
+    let mut farm = Farm::unstarted();
+    farm.listen = format!("{}:0", ns.host_ip);
+    farm.start_with(&[
+        "--task-seconds",
+        "0.05",
+        "--lease-seconds",
+        "1",
+        "--heartbeat-ms",
+        "10000",
+    ]);
+    let rpc = Rpc::connect(&farm.address);
+    farm.start_worker_in(&ns.name, "far", &[]);
+    farm.wait_workers(&["far"]);
+    let far = rpc
+        .workers()
+        .into_iter()
+        .find(|w| w.name == "far")
+        .unwrap()
+        .worker_id;
+    let id = farm.submit();
+    let deadline = Instant::now() + JOB_LIMIT;
+    while !rpc
+        .workers()
+        .iter()
+        .any(|w| w.worker_id == far && w.tasks_leased > 0)
+    {
+        assert!(
+            Instant::now() < deadline,
+            "the far worker leased nothing\n{}",
+            farm.logs()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    farm.start_worker("near", &[]);
+
+    // The far worker's lease expires while it uploads; its result is refused when it lands,
+    // as stale, not from an unknown worker: it was still registered.
+    let log = farm.path("coordinator-1.log");
+    let refused = format!("from {far} refused");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let text = std::fs::read_to_string(&log).unwrap();
+        if text.contains(&format!("(worker {far}) expired"))
+            && text
+                .lines()
+                .any(|l| l.contains(&refused) && (l.contains("stale") || l.contains("not leased")))
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no result of {far} was refused for its expired lease\n{}",
+            farm.logs()
+        );
+        std::thread::sleep(STATUS_POLL);
+    }
+
+    farm.wait_finished(&id);
+    farm.assert_reference_result(&id, false);
+    for w in &mut farm.workers {
+        assert!(w.running(), "{} died:\n{}", w.what, w.log_text());
+    }
 }

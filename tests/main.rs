@@ -7,7 +7,8 @@
 //! - [`reconstruct`]: `scatterfarm reconstruct` end to end with the CPU engine;
 //! - [`farm`]: coordinator, workers and clients across processes, and fake workers;
 //! - [`faults`]: several jobs at once, cancel and delete in flight, SIGTERM, two coordinators
-//!   on one data folder, results past their lease;
+//!   on one data folder, results past their lease (one over a slowed link in a network
+//!   namespace);
 //! - [`status_page`]: the coordinator's status page in headless Chromium;
 //! - [`deploy`]: `deploy/local-cluster.sh` in network namespaces.
 

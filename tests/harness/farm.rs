@@ -2,12 +2,12 @@
 //! `scatterfarm worker`s with their logs, and the client commands, all real processes on
 //! loopback, in a temporary folder with the job files.
 
-use super::process::{run, scatterfarm, Proc, Ran};
+use super::process::{run, scatterfarm, scatterfarm_in_netns, Proc, Ran};
 use super::reference::reference_of;
 use super::scenes::{job_toml, job_toml_of, Search, THREE};
 use serde_json::Value;
 use std::path::PathBuf;
-use std::process::ExitStatus;
+use std::process::{Command, ExitStatus};
 use std::time::{Duration, Instant};
 
 /// The files `scatterfarm result` writes.
@@ -29,7 +29,8 @@ pub struct Farm {
     pub address: String,
     /// The URL clients and workers use (the address, unless a test changes it).
     pub url: String,
-    /// Port 0 at first, then the port the coordinator chose: restarts keep it.
+    /// Port 0 at first, then the port the coordinator chose: restarts keep it. The address is
+    /// loopback's unless a test sets another one before the first start.
     pub listen: String,
     pub coordinator_args: Vec<String>,
     /// `--token-file` / `--tls-ca` of clients and workers.
@@ -116,9 +117,12 @@ impl Farm {
             );
             std::thread::sleep(Duration::from_millis(20));
         };
+        let host = self.listen.rsplit_once(':').unwrap().0.to_string();
         assert!(
-            url.starts_with("http://127.0.0.1:") || url.starts_with("https://127.0.0.1:"),
-            "address file: {url:?}"
+            url.starts_with(&format!("http://{host}:"))
+                || url.starts_with(&format!("https://{host}:")),
+            "address file: {url:?} (listening on {})",
+            self.listen
         );
         if self.starts > 1 {
             assert_eq!(url, self.address, "the restarted coordinator moved");
@@ -127,7 +131,7 @@ impl Farm {
         if self.url.is_empty() {
             self.url = url;
         }
-        self.listen = format!("127.0.0.1:{}", self.port());
+        self.listen = format!("{host}:{}", self.port());
         self.coordinator = Some(proc);
     }
 
@@ -158,7 +162,15 @@ impl Farm {
     /// Starts `scatterfarm worker --engine cpu --name NAME` with the farm's connection flags and
     /// `extra`; returns its index in `workers`.
     pub fn start_worker(&mut self, name: &str, extra: &[&str]) -> usize {
-        let mut cmd = scatterfarm();
+        self.start_worker_with(scatterfarm(), name, extra)
+    }
+
+    /// [`Self::start_worker`] in the network namespace `netns` (`ip netns exec`).
+    pub fn start_worker_in(&mut self, netns: &str, name: &str, extra: &[&str]) -> usize {
+        self.start_worker_with(scatterfarm_in_netns(netns), name, extra)
+    }
+
+    fn start_worker_with(&mut self, mut cmd: Command, name: &str, extra: &[&str]) -> usize {
         cmd.env("RUST_LOG", "info")
             .args([
                 "worker",

@@ -51,6 +51,16 @@ pub fn has_ip() -> bool {
         .is_ok_and(|s| s.success())
 }
 
+/// Whether iproute2's `tc` is on PATH.
+pub fn has_tc() -> bool {
+    Command::new("tc")
+        .arg("-V")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
 /// Debian's Chromium, if installed.
 pub fn chromium() -> Option<PathBuf> {
     ["/usr/bin/chromium", "/usr/bin/chromium-browser"]

@@ -11,7 +11,18 @@ use std::time::{Duration, Instant};
 /// `scatterfarm` with a clean environment: no token, coordinator URL or backtrace setting
 /// leaks in from the caller; logs at warn, without colours; no stdin.
 pub fn scatterfarm() -> Command {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_scatterfarm"));
+    clean(Command::new(env!("CARGO_BIN_EXE_scatterfarm")))
+}
+
+/// [`scatterfarm`] run in the network namespace `netns`: `ip netns exec NETNS scatterfarm`
+/// (`ip` execs it, so the child's pid is the command's).
+pub fn scatterfarm_in_netns(netns: &str) -> Command {
+    let mut cmd = Command::new("ip");
+    cmd.args(["netns", "exec", netns, env!("CARGO_BIN_EXE_scatterfarm")]);
+    clean(cmd)
+}
+
+fn clean(mut cmd: Command) -> Command {
     for var in [
         "SCATTERFARM_TOKEN",
         "SCATTERFARM_TOKEN_FILE",
