@@ -357,6 +357,33 @@ fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
         report["epsilons"].as_object().unwrap().is_empty(),
         "{report:#}"
     );
+    // The convergence curve: every level, then every sweep, on consumption that only grows,
+    // ending on what the search consumed and the map it returned; drawn in convergence.png.
+    let curve = report["convergence"]
+        .as_array()
+        .expect("a convergence curve");
+    let stages: Vec<&str> = curve.iter().map(|p| p["stage"].as_str().unwrap()).collect();
+    let levels = report["levels"].as_array().unwrap().len();
+    let sweeps = report["refinement"].as_array().unwrap().len();
+    assert_eq!(stages.len(), levels + sweeps, "{curve:#?}");
+    assert!(stages[..levels].iter().all(|s| *s == "level"), "{stages:?}");
+    assert!(stages[levels..].iter().all(|s| *s == "sweep"), "{stages:?}");
+    for key in ["requests", "renders", "photons"] {
+        let v: Vec<u64> = curve.iter().map(|p| p[key].as_u64().unwrap()).collect();
+        assert!(
+            v.windows(2).all(|w| w[0] <= w[1]) && v[0] > 0,
+            "{key}: {v:?}"
+        );
+        assert!(
+            *v.last().unwrap() <= report[key].as_u64().unwrap(),
+            "{key}: {v:?}"
+        );
+    }
+    assert_eq!(curve.last().unwrap()["pixel_accuracy"], 1.0, "{curve:#?}");
+    let png = dir.path().join("like/convergence.png");
+    assert!(std::fs::metadata(&png)
+        .map(|m| m.len() > 1000)
+        .unwrap_or(false));
     let data = dir.path().join("data");
     let mut with_data: Vec<&str> = args.to_vec();
     with_data.extend(["--data", data.to_str().unwrap()]);

@@ -50,7 +50,7 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         );
     };
     let dir = tempfile::tempdir().unwrap();
-    let http = free_port();
+    let http_port = free_port();
     let addr_file = dir.path().join("address");
     let mut coordinator = scatterfarm();
     coordinator
@@ -58,7 +58,7 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         .arg(dir.path().join("data"))
         .arg("--address-file")
         .arg(&addr_file)
-        .args(["--http", &format!("127.0.0.1:{http}")]);
+        .args(["--http", &format!("127.0.0.1:{http_port}")]);
     let _coordinator = Proc::spawn(coordinator);
     let url = wait_for_file(&addr_file);
     let mut worker = scatterfarm();
@@ -85,7 +85,7 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         std::thread::sleep(Duration::from_millis(200));
     }
 
-    let page = format!("http://127.0.0.1:{http}/");
+    let page = format!("http://127.0.0.1:{http_port}/");
     let profile = dir.path().join("chromium-profile");
     let dom = browse(&browser, &profile, &["--dump-dom"], &page);
     assert!(
@@ -108,6 +108,41 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         img.contains("data-loaded=\"1\""),
         "the map image did not load: {img}"
     );
+
+    // The convergence curve beside the map: an SVG with the score's polyline, once level 0
+    // has ended (polled: the search may still be in it).
+    assert!(
+        dom.contains(&format!("/jobs/{id}/convergence.svg")),
+        "no convergence plot on the page:\n{dom}"
+    );
+    let until = Instant::now() + Duration::from_secs(120);
+    let svg = loop {
+        let r = http(
+            http_port,
+            "GET",
+            &format!("/jobs/{id}/convergence.svg"),
+            &[],
+            "",
+        );
+        if r.status == 200 {
+            break r;
+        }
+        assert_eq!(r.status, 404, "{}", r.body);
+        assert!(Instant::now() < until, "no curve in time: {}", r.body);
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(
+        svg.headers.to_lowercase().contains("image/svg+xml"),
+        "{}",
+        svg.headers
+    );
+    assert!(
+        svg.body.starts_with("<svg") && svg.body.contains("class=\"score\""),
+        "{}",
+        svg.body
+    );
+    let r = http(http_port, "GET", "/jobs/nope/convergence.svg", &[], "");
+    assert_eq!(r.status, 404, "{}", r.body);
 
     let artifacts = repo_root().join("target/test-artifacts");
     std::fs::create_dir_all(&artifacts).unwrap();
@@ -143,7 +178,12 @@ fn the_web_face_asks_for_the_coordinators_token_unless_told_not_to() {
     };
     let (_coordinator, port) = start(false);
     let browser = "Accept: text/html";
-    for path in ["/", "/metrics", "/jobs/j1/map.png"] {
+    for path in [
+        "/",
+        "/metrics",
+        "/jobs/j1/map.png",
+        "/jobs/j1/convergence.svg",
+    ] {
         let r = http(port, "GET", path, &[browser], "");
         assert_eq!(r.status, 401, "{path} without the token: {}", r.body);
     }

@@ -11,8 +11,9 @@ use std::process::{Command, ExitStatus};
 use std::time::{Duration, Instant};
 
 /// The files `scatterfarm result` writes.
-const RESULT_FILES: [&str; 5] = [
+const RESULT_FILES: [&str; 6] = [
     "report.json",
+    "convergence.png",
     "materials.npy",
     "materials.json",
     "reconstruction.png",

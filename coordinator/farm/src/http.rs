@@ -1,6 +1,8 @@
 //! The coordinator's web face (`--http ADDR`): `/metrics` for Prometheus, a status page at `/`
 //! (jobs with progress and ETA, workers with engine, throughput and last heartbeat, each job's
-//! current best map), and `/jobs/{id}/map.png`, the map itself.
+//! current best map and its convergence curve), `/jobs/{id}/map.png`, the map itself, and
+//! `/jobs/{id}/convergence.svg`, the score and accuracy at the end of every level and sweep
+//! against the photons spent ([`scatterfarm_job::convergence_plot`]).
 //!
 //! Everything is read from one snapshot of the [`Scheduler`] taken under its lock; pages, metrics
 //! and maps are built after the lock is released, and a job's map is encoded once per state of
@@ -306,7 +308,8 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
         "<style>body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse}",
         "td,th{padding:4px 10px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}",
         ".bar{width:160px;height:10px;background:#eee}.bar div{height:10px;background:#3a7}",
-        "img.map{width:128px;height:128px;image-rendering:pixelated;border:1px solid #999}</style>",
+        "img.map{width:128px;height:128px;image-rendering:pixelated;border:1px solid #999}",
+        "img.curve{width:320px;height:170px;border:1px solid #ddd}</style>",
         "</head><body><h1>scatterfarm coordinator</h1>"
     ));
     h.push_str(&format!(
@@ -322,7 +325,7 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
     if s.jobs.is_empty() {
         h.push_str("<p id=\"no-jobs\">No jobs.</p>");
     } else {
-        h.push_str("<table id=\"jobs\"><tr><th>job</th><th>name</th><th>state</th><th>progress</th><th>level</th><th>best similarity</th><th>ETA</th><th>workers busy</th><th>current best</th></tr>");
+        h.push_str("<table id=\"jobs\"><tr><th>job</th><th>name</th><th>state</th><th>progress</th><th>level</th><th>best similarity</th><th>ETA</th><th>workers busy</th><th>current best</th><th>convergence</th></tr>");
         for j in &s.jobs {
             let share = j.renders_done as f64 / j.renders_total.max(1) as f64;
             let map = if j.best_similarity.is_finite() {
@@ -333,10 +336,18 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
             } else {
                 "—".into()
             };
+            let curve = if j.best_similarity.is_finite() {
+                format!(
+                    "<img class=\"curve\" alt=\"convergence of {id}\" src=\"/jobs/{id}/convergence.svg\">",
+                    id = esc(&j.job_id)
+                )
+            } else {
+                "—".into()
+            };
             h.push_str(&format!(
                 "<tr class=\"job\" data-job=\"{id}\"><td>{id}</td><td>{name}</td><td>{state}<br><small>{msg}</small></td>\
                  <td><div class=\"bar\"><div style=\"width:{pct:.1}%\"></div></div>{done}/{total} renders ({pct:.1} %)</td>\
-                 <td>{level}/{levels}</td><td>{best}</td><td>{eta}</td><td>{busy}</td><td>{map}</td></tr>",
+                 <td>{level}/{levels}</td><td>{best}</td><td>{eta}</td><td>{busy}</td><td>{map}</td><td>{curve}</td></tr>",
                 id = esc(&j.job_id),
                 name = esc(&j.name),
                 state = state_name(j.state),
@@ -452,6 +463,46 @@ async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
     }
 }
 
+/// `/jobs/{id}/convergence.svg`: the job's curve so far. Its points (a few maps of the grid)
+/// are copied under the lock; the accuracies and the drawing are made after it.
+async fn convergence_svg(State(web): State<Web>, Path(id): Path<String>) -> Response {
+    let wanted = id.clone();
+    let taken = web
+        .farm
+        .locked(move |s| {
+            s.jobs.get(&wanted).map(|job| {
+                let search = &job.checkpoint.search;
+                (
+                    scatterfarm_search::convergence::curve(search),
+                    search.table().clone(),
+                    job.plan.truth.clone(),
+                    job.plan.config.grid as usize,
+                )
+            })
+        })
+        .await;
+    let Ok(Some((points, table, truth, grid))) = taken else {
+        return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
+    };
+    let accuracy = |a: &[u16]| {
+        let t = truth.as_ref()?;
+        (a.len() == grid * grid)
+            .then(|| scatterfarm_job::outcome::pixel_accuracy(a, grid, &table, t))
+    };
+    let curve = scatterfarm_job::outcome::convergence(points, &accuracy);
+    match scatterfarm_job::convergence_plot::svg(&curve) {
+        Some(svg) => (
+            [
+                (header::CONTENT_TYPE, "image/svg+xml"),
+                (header::CACHE_CONTROL, "no-store"),
+            ],
+            svg,
+        )
+            .into_response(),
+        None => (StatusCode::NOT_FOUND, "no level has ended yet").into_response(),
+    }
+}
+
 /// Serves the web face on `addr` until `shutdown` resolves, asking for `token` when it is set;
 /// returns the bound address and the serving future.
 pub async fn start(
@@ -479,6 +530,7 @@ pub async fn start(
         .route("/", get(index))
         .route("/metrics", get(metrics))
         .route("/jobs/{id}/map.png", get(map_png))
+        .route("/jobs/{id}/convergence.svg", get(convergence_svg))
         .route_layer(middleware::from_fn_with_state(
             token.clone(),
             http_auth::require,

@@ -11,8 +11,10 @@
 //! - [`setup`]: rendering a plan's setup renders in one process.
 //! - [`report`]: the contents of `report.json`.
 //! - [`picture`]: PNG drawings of material maps and observation matrices.
+//! - [`convergence_plot`]: the convergence curve as a PNG and as SVG.
 //! - [`outcome`]: a reconstruction's outputs and its measures against a known truth.
 
+pub mod convergence_plot;
 pub mod inputs;
 pub mod observation;
 pub mod options;

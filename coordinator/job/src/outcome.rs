@@ -285,6 +285,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
             )
         })
     };
+    let measures_of = |a: &[u16]| (a.len() == grid * grid).then(|| measures(a)).flatten();
     let levels = s
         .search
         .levels()
@@ -317,6 +318,9 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
                 .flatten(),
         })
         .collect();
+    let convergence = convergence(scatterfarm_search::convergence::curve(s.search), &|a| {
+        measures_of(a).map(|m| m.0)
+    });
     let m = measures(s.assignment);
     let report = Report {
         pixel_accuracy: m.map(|m| m.0),
@@ -339,6 +343,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         configuration: s.config.clone(),
         levels,
         refinement,
+        convergence,
     };
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     write_materials(out, s.assignment, grid, table)?;
@@ -350,8 +355,43 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
         s.truth,
     )?;
     write_maps_png(&out.join("maps.png"), s.assignment, grid, table)?;
+    if let Some(img) = crate::convergence_plot::png(&report.convergence) {
+        picture::save_png(&img, &out.join("convergence.png"))?;
+    }
     write_json(&out.join("report.json"), &report)?;
     Ok(report)
+}
+
+/// The convergence curve `points` (of [`scatterfarm_search::convergence::curve`]) as the
+/// report has it, each point's accuracy from `accuracy` (of its map).
+pub fn convergence(
+    points: Vec<scatterfarm_search::convergence::Point>,
+    accuracy: &dyn Fn(&[u16]) -> Option<f64>,
+) -> Vec<crate::report::ConvergenceReport> {
+    use scatterfarm_search::convergence::Stage;
+    points
+        .into_iter()
+        .map(|p| {
+            let (stage, index) = match p.stage {
+                Stage::Level(l) => ("level", l),
+                Stage::Sweep(n) => ("sweep", n),
+            };
+            let spent = p.spent.unwrap_or(scatterfarm_search::convergence::Spent {
+                requests: 0,
+                renders: 0,
+                photons: 0,
+            });
+            crate::report::ConvergenceReport {
+                stage: stage.into(),
+                index,
+                requests: spent.requests,
+                renders: spent.renders,
+                photons: spent.photons,
+                score: p.score,
+                pixel_accuracy: accuracy(&p.map),
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]

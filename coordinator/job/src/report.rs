@@ -83,6 +83,26 @@ pub struct Report {
     /// The refinement stage's sweeps, when the search refines.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub refinement: Vec<SweepReport>,
+    /// The score (and accuracy) at the end of every level and sweep against what the search
+    /// had consumed by then: the curve `convergence.png` draws.
+    #[serde(default)]
+    pub convergence: Vec<ConvergenceReport>,
+}
+
+/// One point of the convergence curve in `report.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ConvergenceReport {
+    /// `level` or `sweep`.
+    pub stage: String,
+    /// The level (from 0) or the sweep (from 0).
+    pub index: u32,
+    /// What the search had consumed when the stage ended (as the report's totals).
+    pub requests: u64,
+    pub renders: u64,
+    pub photons: u64,
+    pub score: f64,
+    /// The stage's map's pixel accuracy, when the truth is known.
+    pub pixel_accuracy: Option<f64>,
 }
 
 /// One refinement sweep in `report.json`.

@@ -7,6 +7,7 @@
 //! - [`similarity`]: similarity metrics and the calibration of ε.
 //! - [`likelihood`]: the deviance score and paired comparisons on common random numbers.
 //! - [`refine`]: the pixel-level refinement stage after the quad-tree search.
+//! - [`convergence`]: the score and consumption at the end of every level and sweep.
 //! - [`prefixes`]: racing's first-stage counts, which a contender's full render extends.
 //! - [`identity`]: a render's identity, under which its score is cached.
 //! - [`steps`]: the one step driver: cached scores, missing renders grouped, consumption.
@@ -14,6 +15,7 @@
 //! - [`driver`]: what a search scores against and consumes; running it in one process.
 
 pub mod chunks;
+pub mod convergence;
 pub mod driver;
 pub mod identity;
 pub mod likelihood;

@@ -281,6 +281,10 @@ pub struct Search {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     refined: Option<LevelResult>,
     finished: bool,
+    /// What the search had consumed at the end of each stage, noted by the step driver
+    /// ([`crate::convergence`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    spent: Vec<crate::convergence::Spent>,
 }
 
 impl Search {
@@ -322,6 +326,7 @@ impl Search {
             refinement: None,
             refined: None,
             finished: false,
+            spent: Vec::new(),
         };
         let candidates = search.level_candidates(0, &[])?;
         // Level 0 is one step over one region (the whole medium) from a map that every
@@ -380,6 +385,21 @@ impl Search {
     /// The refinement stage, once it has started.
     pub fn refinement(&self) -> Option<&Refinement> {
         self.refinement.as_ref()
+    }
+
+    /// What the search had consumed at the end of each stage so far (levels, then sweeps).
+    pub fn spent(&self) -> &[crate::convergence::Spent] {
+        &self.spent
+    }
+
+    /// Notes what the search has consumed, `used`, for every stage ended since the last note
+    /// (the step driver calls it after each step; a search checkpointed before the curve was
+    /// recorded notes its earlier stages at the first note after it resumes).
+    pub fn note_spent(&mut self, used: &crate::driver::Consumption) {
+        let ended = crate::convergence::stages_ended(self);
+        if self.spent.len() < ended {
+            self.spent.resize(ended, used.into());
+        }
     }
 
     /// Every photons-per-source value the search renders with (each needs its own ε).
@@ -928,6 +948,7 @@ impl Search {
                             .collect()
                     })
                     .collect();
+                let opaque = physics.iter().map(|m| m.is_opaque()).collect();
                 self.refinement = Some(Refinement::new(
                     config,
                     self.config.grid,
@@ -935,6 +956,7 @@ impl Search {
                     self.config.seed,
                     last.assignment,
                     reweightable,
+                    opaque,
                 ));
                 self.emit_refinement();
                 Ok(())

@@ -140,19 +140,28 @@ enum Waiting {
     /// `M` first, then one render per change, in order; with differential screening `M`'s
     /// first renders are differential ones, each estimating the changes listed for it in
     /// `reweighted`, and the direct renders are of the other changes, in order.
+    ///
+    /// With `filled`, the differential renders are of the filled base
+    /// ([`Refinement::filled_base`]): the first one's first change is `M` itself, and when
+    /// some changes are rendered directly, a plain render of `M` comes before them.
     Sweep {
         changes: Vec<Change>,
         #[serde(default, skip_serializing_if = "Vec::is_empty")]
         reweighted: Vec<Vec<usize>>,
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        filled: bool,
     },
     /// `M` (first) and the options in order: the combined map, then the best change alone
     /// (when it differs).
     /// With `reweighted`, the options are estimated by one differential render of `M` (the
     /// only request) and the best of those beating `M` wins, not the first.
+    /// With `filled`, that render is of the filled base and its first change is `M`.
     Confirm {
         options: Vec<Vec<u16>>,
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         reweighted: bool,
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        filled: bool,
     },
 }
 
@@ -175,6 +184,30 @@ pub struct SweepRecord {
     pub map: Vec<u16>,
 }
 
+/// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
+/// of it that gives back the map it was filled from.
+#[derive(Debug, Clone)]
+struct Base {
+    map: Vec<u16>,
+    current: Change,
+}
+
+impl Base {
+    /// The change of the base that gives `target`: its pixels that differ, in order.
+    fn change_to(&self, target: &[u16]) -> Change {
+        Change {
+            pixels: self
+                .map
+                .iter()
+                .zip(target)
+                .enumerate()
+                .filter(|(_, (b, t))| b != t)
+                .map(|(p, (_, &t))| (p as u32, t))
+                .collect(),
+        }
+    }
+}
+
 /// The refinement state machine.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Refinement {
@@ -188,6 +221,10 @@ pub struct Refinement {
     /// index; empty: by no change).
     #[serde(default)]
     reweightable: Vec<Vec<bool>>,
+    /// Which table materials are opaque (indexed by table index; empty: none known). Their
+    /// pixels are filled for differential renders ([`Refinement::filled_base`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    opaque: Vec<bool>,
     /// The score of the current map on the last seed it was rendered on.
     current_score: Option<f64>,
     sweep: u32,
@@ -210,6 +247,7 @@ impl Refinement {
         job_seed: u64,
         start: Vec<u16>,
         reweightable: Vec<Vec<bool>>,
+        opaque: Vec<bool>,
     ) -> Refinement {
         let mut r = Refinement {
             config,
@@ -218,6 +256,7 @@ impl Refinement {
             job_seed,
             current: start,
             reweightable,
+            opaque,
             current_score: None,
             sweep: 0,
             stalls: 0,
@@ -289,6 +328,14 @@ impl Refinement {
             photons,
             changes,
         };
+        let base = match self.config.screen {
+            Screen::Direct => None,
+            Screen::Differential => self.filled_base(),
+        };
+        if let Some(base) = base {
+            self.emit_filled_sweep(changes, base, seed, photons);
+            return;
+        }
         let (reweighted, direct): (Vec<usize>, Vec<usize>) = match self.config.screen {
             Screen::Direct => (Vec::new(), (0..changes.len()).collect()),
             Screen::Differential => {
@@ -318,7 +365,84 @@ impl Refinement {
         self.waiting = Some(Waiting::Sweep {
             changes,
             reweighted,
+            filled: false,
         });
+    }
+
+    /// A differential sweep on the filled base `base`: every change of `M` becomes the change
+    /// of the base to the changed map, `M` itself the first change of the first render.
+    fn emit_filled_sweep(&mut self, changes: Vec<Change>, base: Base, seed: u64, photons: u32) {
+        let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
+            assignment,
+            seed,
+            photons,
+            changes,
+        };
+        let relative: Vec<Change> = changes
+            .iter()
+            .map(|c| base.change_to(&self.apply(c)))
+            .collect();
+        let (reweighted, direct): (Vec<usize>, Vec<usize>) =
+            (0..changes.len()).partition(|&k| self.can_reweight_on(&base.map, &relative[k]));
+        let reweighted: Vec<Vec<usize>> = reweighted
+            .chunks(self.config.changes_per_render.max(1) as usize)
+            .map(<[usize]>::to_vec)
+            .collect();
+        let mut pending: Vec<RefineRequest> = reweighted
+            .iter()
+            .enumerate()
+            .map(|(r, ks)| {
+                let first = (r == 0).then(|| base.current.clone());
+                let chosen = first
+                    .into_iter()
+                    .chain(ks.iter().map(|&k| relative[k].clone()))
+                    .collect();
+                request(base.map.clone(), chosen)
+            })
+            .collect();
+        if pending.is_empty() {
+            pending.push(request(base.map.clone(), vec![base.current.clone()]));
+        }
+        if !direct.is_empty() {
+            pending.push(request(self.current.clone(), Vec::new()));
+            pending.extend(
+                direct
+                    .iter()
+                    .map(|&k| request(self.apply(&changes[k]), Vec::new())),
+            );
+        }
+        self.pending = pending;
+        self.waiting = Some(Waiting::Sweep {
+            changes,
+            reweighted,
+            filled: true,
+        });
+    }
+
+    /// The filled base of the current map `M`: `M` with every opaque pixel set to the
+    /// background (`docs/model.md`, "The filled base"). Nothing reweights out of an opaque
+    /// pixel, so a differential render of `M` cannot estimate clearing one; a render of the
+    /// base can estimate `M` (its opaque pixels back: weight 0 for every photon that entered
+    /// them, exact) and every change of `M`, clearing included, on the same photons. `None`
+    /// when `M` has no opaque pixel, or its background is opaque.
+    fn filled_base(&self) -> Option<Base> {
+        let opaque = |m: u16| self.opaque.get(usize::from(m)).copied().unwrap_or(false);
+        let background = self.background();
+        if opaque(background) {
+            return None;
+        }
+        let mut map = self.current.clone();
+        let mut pixels = Vec::new();
+        for (p, m) in map.iter_mut().enumerate() {
+            if opaque(*m) {
+                pixels.push((p as u32, *m));
+                *m = background;
+            }
+        }
+        (!pixels.is_empty()).then_some(Base {
+            map,
+            current: Change { pixels },
+        })
     }
 
     /// `photons` doubled for every escalation so far (at most 2³¹).
@@ -352,8 +476,13 @@ impl Refinement {
 
     /// Whether every pixel of `change` can be reweighted from the current map.
     fn can_reweight(&self, change: &Change) -> bool {
+        self.can_reweight_on(&self.current, change)
+    }
+
+    /// Whether every pixel of `change` can be reweighted from `map`.
+    fn can_reweight_on(&self, map: &[u16], change: &Change) -> bool {
         change.pixels.iter().all(|&(p, d)| {
-            let from = self.current[p as usize];
+            let from = map[p as usize];
             self.reweightable
                 .get(usize::from(from))
                 .and_then(|row| row.get(usize::from(d)))
@@ -523,11 +652,13 @@ impl Refinement {
             Waiting::Sweep {
                 changes,
                 reweighted,
-            } => self.sweep_scored(changes, reweighted, scores),
+                filled,
+            } => self.sweep_scored(changes, reweighted, filled, scores),
             Waiting::Confirm {
                 options,
                 reweighted,
-            } => self.confirm_scored(options, reweighted, scores),
+                filled,
+            } => self.confirm_scored(options, reweighted, filled, scores),
         }
         Ok(())
     }
@@ -536,18 +667,33 @@ impl Refinement {
         &mut self,
         changes: Vec<Change>,
         reweighted: Vec<Vec<usize>>,
+        filled: bool,
         scores: &[BlockScore],
     ) {
-        let reference = scores[0];
+        // On the filled base, `M` is the first render's first change, and the direct renders
+        // are paired with a plain render of `M` before them.
+        let n_differential = reweighted.len().max(1);
+        let reference = if filled {
+            scores[0].estimate(0).unwrap_or(scores[0])
+        } else {
+            scores[0]
+        };
+        let direct_reference = if filled {
+            scores.get(n_differential).copied().unwrap_or(reference)
+        } else {
+            reference
+        };
         self.current_score = Some(reference.value);
-        // Each change's score: from its differential render, or its own direct render.
-        let mut of_change: Vec<Option<BlockScore>> = vec![None; changes.len()];
+        // Each change's score: from its differential render, or its own direct render, and
+        // the score of `M` it is paired with.
+        let mut of_change: Vec<Option<(BlockScore, BlockScore)>> = vec![None; changes.len()];
         for (r, ks) in reweighted.iter().enumerate() {
+            let offset = usize::from(filled && r == 0);
             for (j, &k) in ks.iter().enumerate() {
-                of_change[k] = scores[r].estimate(j);
+                of_change[k] = scores[r].estimate(j + offset).map(|s| (s, reference));
             }
         }
-        let first_direct = reweighted.len().max(1);
+        let first_direct = n_differential + usize::from(filled);
         let mut listed = vec![false; changes.len()];
         for ks in &reweighted {
             for &k in ks {
@@ -556,13 +702,17 @@ impl Refinement {
         }
         let direct = (0..changes.len()).filter(|&k| !listed[k]);
         for (i, k) in direct.enumerate() {
-            of_change[k] = scores.get(first_direct + i).copied();
+            of_change[k] = scores
+                .get(first_direct + i)
+                .copied()
+                .map(|s| (s, direct_reference));
         }
         let mut ranked: Vec<(f64, usize)> = of_change
             .iter()
             .enumerate()
             .filter_map(|(k, s)| {
-                let z = self.z_of((*s)?, reference)?;
+                let (s, against) = (*s)?;
+                let z = self.z_of(s, against)?;
                 (z > self.config.z).then_some((z, k))
             })
             .collect();
@@ -623,8 +773,20 @@ impl Refinement {
                 })
                 .collect()
         };
+        // Estimated from a differential render of `M`, or of its filled base when `M` has
+        // opaque pixels (then `M` is the render's first change).
+        let base = match self.config.screen {
+            Screen::Direct => None,
+            Screen::Differential => self.filled_base(),
+        };
         let differential = self.config.screen == Screen::Differential
-            && prefixes.iter().all(|c| self.can_reweight(c));
+            && match &base {
+                Some(b) => prefixes
+                    .iter()
+                    .all(|c| self.can_reweight_on(&b.map, &b.change_to(&self.apply(c)))),
+                None => prefixes.iter().all(|c| self.can_reweight(c)),
+            };
+        let filled = differential && base.is_some();
         let options: Vec<Vec<u16>> = if differential {
             prefixes.iter().map(|c| self.apply(c)).collect()
         } else {
@@ -646,7 +808,12 @@ impl Refinement {
             }
             options
         };
-        self.pending = if differential {
+        self.pending = if let (true, Some(b)) = (differential, &base) {
+            let chosen = std::iter::once(b.current.clone())
+                .chain(options.iter().map(|o| b.change_to(o)))
+                .collect();
+            vec![request(b.map.clone(), chosen)]
+        } else if differential {
             vec![request(self.current.clone(), prefixes)]
         } else {
             let mut pending = vec![request(self.current.clone(), Vec::new())];
@@ -665,13 +832,27 @@ impl Refinement {
         self.waiting = Some(Waiting::Confirm {
             options,
             reweighted: differential,
+            filled,
         });
     }
 
-    fn confirm_scored(&mut self, options: Vec<Vec<u16>>, reweighted: bool, scores: &[BlockScore]) {
-        let reference = scores[0];
+    fn confirm_scored(
+        &mut self,
+        options: Vec<Vec<u16>>,
+        reweighted: bool,
+        filled: bool,
+        scores: &[BlockScore],
+    ) {
+        let offset = usize::from(filled);
+        let reference = if filled {
+            scores[0].estimate(0).unwrap_or(scores[0])
+        } else {
+            scores[0]
+        };
         let of_option: Vec<Option<BlockScore>> = if reweighted {
-            (0..options.len()).map(|k| reference.estimate(k)).collect()
+            (0..options.len())
+                .map(|k| scores[0].estimate(k + offset))
+                .collect()
         } else {
             (0..options.len())
                 .map(|k| scores.get(k + 1).copied())
@@ -757,7 +938,7 @@ mod tests {
     }
 
     fn run(truth: &[u16], start: Vec<u16>, materials: Vec<u16>) -> Refinement {
-        run_with(config(), truth, start, materials, Vec::new())
+        run_with(config(), truth, start, materials, Vec::new(), Vec::new())
     }
 
     /// A score's value and blocks.
@@ -771,8 +952,9 @@ mod tests {
         start: Vec<u16>,
         materials: Vec<u16>,
         reweightable: Vec<Vec<bool>>,
+        opaque: Vec<bool>,
     ) -> Refinement {
-        let mut r = Refinement::new(config, 4, materials, 1, start, reweightable);
+        let mut r = Refinement::new(config, 4, materials, 1, start, reweightable, opaque);
         let mut steps = 0;
         while !r.is_finished() {
             let scored: Vec<(Scored, Vec<Option<ChangeScore>>)> = r
@@ -834,7 +1016,15 @@ mod tests {
         for p in [5, 6, 9, 10] {
             start[p] = 1;
         }
-        let r = Refinement::new(config(), 4, vec![0, 1], 1, start.clone(), Vec::new());
+        let r = Refinement::new(
+            config(),
+            4,
+            vec![0, 1],
+            1,
+            start.clone(),
+            Vec::new(),
+            Vec::new(),
+        );
         let right = r
             .object_moves()
             .into_iter()
@@ -845,7 +1035,15 @@ mod tests {
 
     #[test]
     fn requests_share_a_seed_within_a_sweep_and_sweeps_differ() {
-        let r = Refinement::new(config(), 4, vec![0, 1], 1, vec![0; 16], Vec::new());
+        let r = Refinement::new(
+            config(),
+            4,
+            vec![0, 1],
+            1,
+            vec![0; 16],
+            Vec::new(),
+            Vec::new(),
+        );
         let seeds: BTreeSet<u64> = r.pending().iter().map(|p| p.seed).collect();
         assert_eq!(seeds.len(), 1);
         assert_eq!(r.pending().len(), 17);
@@ -885,6 +1083,7 @@ mod tests {
             1,
             vec![0; 16],
             reweightable.clone(),
+            Vec::new(),
         );
         // 32 single-pixel changes, all from material 0: four differential renders of M.
         assert_eq!(first.pending().len(), 4);
@@ -897,9 +1096,77 @@ mod tests {
                 .sum::<usize>(),
             32
         );
-        let r = run_with(cfg, &truth, vec![0; 16], vec![0, 1, 2], reweightable);
+        let r = run_with(
+            cfg,
+            &truth,
+            vec![0; 16],
+            vec![0, 1, 2],
+            reweightable,
+            Vec::new(),
+        );
         assert_eq!(r.current().0, &truth[..]);
         let direct = run(&truth, vec![0; 16], vec![0, 1, 2]);
+        assert_eq!(r.current().0, direct.current().0);
+    }
+
+    /// With an opaque material (2: nothing reweights out of it), a differential sweep renders
+    /// the filled base (the map with its opaque pixels set to the background): `M` is its
+    /// first change, clearing an opaque pixel is a change of it like any other, so nothing is
+    /// rendered directly, and the refinement ends where direct screening does.
+    #[test]
+    fn opaque_pixels_are_cleared_from_the_filled_base() {
+        let mut truth = vec![0u16; 16];
+        truth[5] = 2;
+        truth[6] = 2;
+        truth[10] = 1;
+        // Start with an opaque pixel too many and one missing.
+        let mut start = truth.clone();
+        start[6] = 0;
+        start[12] = 2;
+        let reweightable = vec![
+            vec![true, true, true],
+            vec![true, true, true],
+            vec![false, false, true],
+        ];
+        let opaque = vec![false, false, true];
+        let cfg = RefineConfig {
+            screen: Screen::Differential,
+            ..config()
+        };
+        let first = Refinement::new(
+            cfg.clone(),
+            4,
+            vec![0, 1, 2],
+            1,
+            start.clone(),
+            reweightable.clone(),
+            opaque.clone(),
+        );
+        let pending = first.pending();
+        assert_eq!(pending.len(), 1, "one differential render, nothing direct");
+        let mut base = start.clone();
+        base[5] = 0;
+        base[12] = 0;
+        assert_eq!(pending[0].assignment, base);
+        assert_eq!(
+            pending[0].changes[0].pixels,
+            vec![(5, 2), (12, 2)],
+            "M is the base's first change"
+        );
+        // Clearing pixel 12 keeps pixel 5 opaque: the change of the base is (5, 2) alone.
+        assert!(pending[0].changes[1..]
+            .iter()
+            .any(|c| c.pixels == vec![(5, 2)]));
+        let r = run_with(
+            cfg,
+            &truth,
+            start.clone(),
+            vec![0, 1, 2],
+            reweightable,
+            opaque,
+        );
+        assert_eq!(r.current().0, &truth[..]);
+        let direct = run(&truth, start, vec![0, 1, 2]);
         assert_eq!(r.current().0, direct.current().0);
     }
 }

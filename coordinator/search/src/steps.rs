@@ -222,6 +222,7 @@ impl Steps {
         self.count(search, &pending, used);
         search.submit_scores(&scores)?;
         used.requests += pending.len() as u64;
+        search.note_spent(used);
         Ok(Next::Submitted)
     }
 

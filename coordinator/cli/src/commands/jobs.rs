@@ -273,7 +273,7 @@ pub fn run_watch(args: JobArgs) -> Result<()> {
 pub struct ResultArgs {
     #[command(flatten)]
     pub job: JobArgs,
-    /// Write report.json, materials.npy, materials.json, reconstruction.png and maps.png here.
+    /// Write report.json, materials.npy, materials.json, reconstruction.png, maps.png and convergence.png here.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -320,7 +320,7 @@ pub fn run_result(args: ResultArgs) -> Result<()> {
         );
     } else {
         eprintln!(
-            "wrote report.json, materials.npy, materials.json, reconstruction.png and maps.png to {}",
+            "wrote report.json, materials.npy, materials.json, reconstruction.png, maps.png and convergence.png to {}",
             args.out.display()
         );
     }

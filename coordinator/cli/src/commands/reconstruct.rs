@@ -150,7 +150,7 @@ pub fn run(args: ReconstructArgs) -> Result<()> {
         .map(|a| format!(", pixel accuracy {:.1} %", a * 100.0))
         .unwrap_or_default();
     eprintln!(
-        "similarity {:.4}{accuracy}; {} renders in {:.1} s; wrote report.json, materials.npy, materials.json, reconstruction.png and maps.png to {}",
+        "similarity {:.4}{accuracy}; {} renders in {:.1} s; wrote report.json, materials.npy, materials.json, reconstruction.png, maps.png and convergence.png to {}",
         report.similarity,
         report.renders,
         report.wall_seconds,

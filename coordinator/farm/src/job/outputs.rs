@@ -8,8 +8,9 @@ use scatterfarm_job::outcome::{self, Summary};
 use std::collections::BTreeMap;
 
 /// The output files a finished job stores, as blobs `output/NAME`.
-const OUTPUT_FILES: [&str; 5] = [
+const OUTPUT_FILES: [&str; 6] = [
     "report.json",
+    "convergence.png",
     "materials.npy",
     "materials.json",
     "reconstruction.png",
