@@ -115,14 +115,14 @@ impl Layout {
             .collect()
     }
 
-    fn score_label(v: f64) -> String {
+    /// A score tick's label, with enough decimals to tell the five ticks of `range` apart.
+    fn score_label(v: f64, range: (f64, f64)) -> String {
         if v.abs() >= 1e7 {
-            format!("{v:.3e}")
-        } else if v.abs() >= 10.0 {
-            format!("{v:.0}")
-        } else {
-            format!("{v:.3}")
+            return format!("{v:.3e}");
         }
+        let step = ((range.1 - range.0) / 4.0).abs().max(1e-12);
+        let decimals = (-step.log10()).ceil().max(0.0) as usize;
+        format!("{v:.decimals$}")
     }
 
     fn score_polyline(&self) -> Vec<(f64, f64)> {
@@ -149,7 +149,7 @@ pub fn png(curve: &[ConvergenceReport]) -> Option<RgbImage> {
     for v in Layout::ticks(l.score) {
         let y = l.y_score(v);
         line(&mut img, (x0, y), (x1, y), GRID);
-        let text = Layout::score_label(v);
+        let text = Layout::score_label(v, l.score);
         let w = 8.0 * text.len() as f64;
         draw_text(
             &mut img,
@@ -262,7 +262,7 @@ pub fn svg(curve: &[ConvergenceReport]) -> Option<String> {
             x0 - 6.0,
             y + 4.0,
             hex(SCORE),
-            Layout::score_label(v)
+            Layout::score_label(v, l.score)
         );
     }
     if let Some(r) = l.accuracy {
@@ -421,5 +421,13 @@ mod tests {
         let svg = svg(&curve).unwrap();
         assert!(!svg.contains("class=\"accuracy\"") && !svg.contains("refinement"));
         assert!(self::svg(&[]).is_none() && png(&[]).is_none());
+        // Ticks close together still read apart.
+        let range = (0.99905, 0.99955);
+        let labels: Vec<String> = Layout::ticks(range)
+            .into_iter()
+            .map(|v| Layout::score_label(v, range))
+            .collect();
+        let distinct: std::collections::BTreeSet<&String> = labels.iter().collect();
+        assert_eq!(distinct.len(), 5, "{labels:?}");
     }
 }
