@@ -14,15 +14,9 @@ SCENES=${SCENES:-fig7a,fig7b,fig7c,fig7d,fig7e,fig7f,fig7g,fig7h,fig7i,fig7j,fig
 SEEDS=${SEEDS:-1,2,3}
 SEARCHES=${SEARCHES:-likelihood-differential paper}
 cargo build --release -q
+source tests/bench/searches.sh
 for search in $SEARCHES; do
-  case "$search" in
-    likelihood-differential)
-      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
-             --set refine_confirm_photons=204800 --set refine_sweeps=24) ;;
-    # The paper's budget at this geometry: 4 096 photons per source per render.
-    paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
-    *) flags=(--search "$search") ;;
-  esac
+  search_flags "$search"
   target/release/scatterfarm bench reconstruct --engine cpu --scenes "$SCENES" --seeds "$SEEDS" \
     "${flags[@]}" --out "tests/bench/quality-$search.json"
 done

@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# The quality bench one scene at a time (issue 18), so a long table survives an interrupted
+# session: each (search, scene) writes tests/bench/quality/<search>-<scene>.json and its log,
+# and a scene that runs past LIMIT seconds is stopped and recorded as such in its log.
+#
+#   SCENES=fig7b,fig7c SEEDS=1 SEARCHES=likelihood-differential LIMIT=900 bash tests/bench/quality-each.sh
+#
+# The searches and their settings are in searches.sh.
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+SCENES=${SCENES:-fig7a,fig7b,fig7c,fig7d,fig7e,fig7f,fig7g,fig7h,fig7i,fig7j,fig7k,fig7l,phantom16}
+SEEDS=${SEEDS:-1}
+SEARCHES=${SEARCHES:-likelihood-differential paper}
+LIMIT=${LIMIT:-900}
+cargo build --release -q || exit 1
+mkdir -p tests/bench/quality
+source tests/bench/searches.sh
+for search in $SEARCHES; do
+  search_flags "$search"
+  for scene in ${SCENES//,/ }; do
+    name="tests/bench/quality/$search-$scene-seeds${SEEDS//,/-}"
+    timeout "$LIMIT" target/release/scatterfarm bench reconstruct --engine cpu --scenes "$scene" \
+      --seeds "$SEEDS" "${flags[@]}" --out "$name.json" >/dev/null 2>"$name.log"
+    rc=$?
+    [ $rc -eq 124 ] && echo "stopped after $LIMIT s" >>"$name.log"
+    echo "$search $scene rc=$rc"
+  done
+done

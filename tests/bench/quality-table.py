@@ -1,0 +1,38 @@
+#!/usr/bin/env python3
+"""Prints the quality table (markdown) from the JSON that quality.sh and quality-each.sh write:
+one row per (scene, search) with the mean pixel accuracy over its seeds, the level-0 map's,
+photons, wall seconds and the truth check's z, and the runs that were stopped (their logs end
+with "stopped after"). Usage: python3 tests/bench/quality-table.py [FILE.json|DIR]..."""
+import json
+import pathlib
+import sys
+
+paths = [pathlib.Path(p) for p in sys.argv[1:]] or [pathlib.Path(__file__).parent / "quality"]
+files = []
+for p in paths:
+    files += sorted(p.glob("*.json")) if p.is_dir() else [p]
+runs_of = {}
+for f in files:
+    d = json.loads(f.read_text())
+    name = d["search"]
+    if "refine_screen=differential" in d.get("set", []):
+        name += "-differential"
+    for r in d["runs"]:
+        runs_of.setdefault((r["scene"], name), []).append(r)
+rows = []
+for (scene, name), runs in runs_of.items():
+    mean = lambda k: sum(r[k] for r in runs) / len(runs)
+    rows.append((scene, name, len(runs), mean("pixel_accuracy"), mean("level0_pixel_accuracy"),
+                 mean("photons") / 1e9, mean("wall_seconds"),
+                 ", ".join(f"{r['truth_margin_z']:.1f}" for r in runs)))
+stopped = []
+for p in paths:
+    for log in (sorted(p.glob("*.log")) if p.is_dir() else []):
+        if "stopped after" in log.read_text(errors="replace"):
+            stopped.append(log.stem)
+print("| scene | search | seeds | accuracy | level 0 | G photons | seconds | truth z |")
+print("|---|---|---|---|---|---|---|---|")
+for r in sorted(rows):
+    print(f"| {r[0]} | {r[1]} | {r[2]} | {100*r[3]:.1f} % | {100*r[4]:.1f} % | {r[5]:.2f} | {r[6]:.0f} | {r[7]} |")
+for s in stopped:
+    print(f"| {s} | stopped at the time limit | | | | | | |")

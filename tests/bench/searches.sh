@@ -1,0 +1,16 @@
+# The searches the quality benches compare, by name: `search_flags NAME` sets the array `flags`
+# to the `bench reconstruct` flags of that search. Sourced by quality.sh and quality-each.sh.
+#
+# likelihood-differential: the likelihood search with differential screening (CPU engine):
+#   sweeps of 102 400 photons per source, confirmations of 204 800, up to 24 sweeps.
+# paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
+# anything else: `--search NAME` with its defaults.
+search_flags() {
+  case "$1" in
+    likelihood-differential)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24) ;;
+    paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
+    *) flags=(--search "$1") ;;
+  esac
+}
