@@ -73,7 +73,39 @@ pub fn run_checked(
             .unwrap_or_else(|_| ProgressStyle::default_bar())
             .progress_chars("=> "),
     );
+    // Each level's and sweep's end is logged (a long run's progress in a log, as the
+    // convergence curve will have it).
+    let mut stages = 0usize;
+    let grid = plan.config.grid as usize;
     let mut on_step = |s: &Search, used: &Consumption| {
+        let ended = scatterfarm_search::convergence::stages_ended(s);
+        if ended > stages {
+            let curve = scatterfarm_search::convergence::curve(s);
+            for p in &curve[stages.min(curve.len())..] {
+                let stage = match p.stage {
+                    scatterfarm_search::convergence::Stage::Level(l) => format!("level {l}"),
+                    scatterfarm_search::convergence::Stage::Sweep(n) => format!("sweep {n}"),
+                };
+                let accuracy = plan
+                    .truth
+                    .as_ref()
+                    .filter(|_| p.map.len() == grid * grid)
+                    .map(|t| {
+                        let a = outcome::pixel_accuracy(&p.map, grid, s.table(), t);
+                        format!(", pixel accuracy {:.1} %", a * 100.0)
+                    })
+                    .unwrap_or_default();
+                bar.suspend(|| {
+                    tracing::info!(
+                        "{stage} ended: score {:.4}{accuracy}; {} renders, {:.3} G photons so far",
+                        p.score,
+                        used.renders,
+                        used.photons as f64 / 1e9
+                    )
+                });
+            }
+            stages = ended;
+        }
         let pr = s.progress();
         bar.set_length(pr.renders_total);
         bar.set_position(pr.renders_done);
