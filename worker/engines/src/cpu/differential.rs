@@ -156,6 +156,11 @@ fn log_factor(
     Some(lw)
 }
 
+/// 64-bit words of a bitset over `n` changes.
+fn n_words(n: usize) -> usize {
+    n.div_ceil(64)
+}
+
 /// Renders `item` differentially: see the module documentation.
 pub(super) fn render_differential(
     geometry: Geometry,
@@ -194,8 +199,13 @@ pub(super) fn render_differential(
         .iter()
         .map(|c| change_is_reweightable(table, &item.assignment, c))
         .collect();
-    // Per cell, the factors of the changes that touch it.
+    let physics: Vec<Physics> = table.iter().map(Physics::of).collect();
+    // Per cell, the factors of the changes that touch it; the changes that make it opaque
+    // (weight 0 for a photon that entered it) as a bitset instead, since a filled base's
+    // changes nearly all make the same cells opaque (`docs/model.md`, "The filled base").
+    let words = n_words(changes.len());
     let mut by_cell: Vec<Vec<Factor>> = vec![Vec::new(); pixels];
+    let mut opaque_by_cell: Vec<Vec<u64>> = vec![Vec::new(); pixels];
     for (k, c) in changes.iter().enumerate() {
         if !supported[k] {
             continue;
@@ -203,8 +213,18 @@ pub(super) fn render_differential(
         for &(p, d) in &c.pixels {
             let from = usize::from(item.assignment[p as usize]);
             let to = usize::from(d);
-            if from != to {
-                by_cell[medium.cell_of_pixel(p as usize)].push(Factor {
+            if from == to {
+                continue;
+            }
+            let cell = medium.cell_of_pixel(p as usize);
+            if physics[to].opaque {
+                let mask = &mut opaque_by_cell[cell];
+                if mask.is_empty() {
+                    mask.resize(words, 0);
+                }
+                mask[k / 64] |= 1 << (k % 64);
+            } else {
+                by_cell[cell].push(Factor {
                     change: k,
                     from,
                     to,
@@ -212,7 +232,6 @@ pub(super) fn render_differential(
             }
         }
     }
-    let physics: Vec<Physics> = table.iter().map(Physics::of).collect();
     let g: Vec<f64> = table.iter().map(|m| m.g).collect();
     let sources = geometry.sources();
     let bins = geometry.bins();
@@ -230,6 +249,7 @@ pub(super) fn render_differential(
             let mut zero = vec![false; n_changes];
             let mut hit: Vec<usize> = Vec::new();
             let mut hit_seen = vec![false; n_changes];
+            let mut opaque_hit = vec![0u64; words];
             let mut scatters = 0u64;
             for photon in u64::from(photons.first)..photons.end() {
                 tally.clear();
@@ -240,7 +260,15 @@ pub(super) fn render_differential(
                     continue;
                 };
                 counts[bin] += 1;
+                let mut entered_opaque = false;
                 for &cell in &tally.touched {
+                    let mask = &opaque_by_cell[cell];
+                    if !mask.is_empty() {
+                        entered_opaque = true;
+                        for (h, m) in opaque_hit.iter_mut().zip(mask) {
+                            *h |= m;
+                        }
+                    }
                     let (length, n) = (tally.length[cell], tally.collisions[cell]);
                     let phase = &tally.phase[cell * d..(cell + 1) * d];
                     for &f in &by_cell[cell] {
@@ -251,6 +279,21 @@ pub(super) fn render_differential(
                         match log_factor(&physics, &g, f, length, n, phase) {
                             Some(lw) => log_w[f.change] += lw,
                             None => zero[f.change] = true,
+                        }
+                    }
+                }
+                // Changes that made a cell the photon entered opaque: weight 0.
+                if entered_opaque {
+                    for (i, h) in opaque_hit.iter_mut().enumerate() {
+                        let mut bits = std::mem::take(h);
+                        while bits != 0 {
+                            let k = i * 64 + bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
+                            zero[k] = true;
+                            if !hit_seen[k] {
+                                hit_seen[k] = true;
+                                hit.push(k);
+                            }
                         }
                     }
                 }
