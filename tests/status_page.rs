@@ -2,15 +2,18 @@
 //! and must show the job, the worker and the job's current best map (the image must load). A
 //! screenshot is kept in `target/test-artifacts/status-page.png`.
 //!
-//! The token check of the web face is tested with plain HTTP requests.
+//! The token check of the web face is tested with plain HTTP requests; with `--tls-cert` and
+//! `--tls-key` the web face serves HTTPS with gRPC's certificate (tested with a rustls client
+//! trusting the test CA), refuses plain HTTP, and its login cookie is `Secure`.
 //!
 //! The page test needs Debian's `chromium`. Without it the test says loudly that it skipped, except under
 //! `CI=true`, where it fails.
 
 use crate::harness::gating::{chromium, skip_or_fail};
-use crate::harness::net::{free_port, http, wait_for_file};
-use crate::harness::process::{output, repo_root, scatterfarm, Proc};
+use crate::harness::net::{free_port, http, https, wait_for_file, HttpResponse};
+use crate::harness::process::{output, repo_root, run, scatterfarm, Proc};
 use crate::harness::scenes::LONG_DEMO_JOB;
+use crate::harness::tls::certificates;
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -233,6 +236,8 @@ fn the_web_face_asks_for_the_coordinators_token_unless_told_not_to() {
         cookie.contains("HttpOnly") && cookie.contains("SameSite=Strict"),
         "{cookie}"
     );
+    // Plain HTTP: a Secure cookie would never be sent back.
+    assert!(!cookie.contains("Secure"), "{cookie}");
     let pair = cookie.split(';').next().unwrap();
     let r = http(port, "GET", "/", &[&format!("Cookie: {pair}")], "");
     assert_eq!(r.status, 200, "{}", r.body);
@@ -244,4 +249,194 @@ fn the_web_face_asks_for_the_coordinators_token_unless_told_not_to() {
     let (_open, port) = start(true);
     let r = http(port, "GET", "/metrics", &[], "");
     assert_eq!(r.status, 200, "{}", r.body);
+}
+
+/// The `Set-Cookie` value of a response.
+fn set_cookie(r: &HttpResponse) -> String {
+    r.headers
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("set-cookie: ")
+                .or_else(|| l.strip_prefix("Set-Cookie: "))
+        })
+        .unwrap_or_else(|| panic!("no cookie: {}", r.headers))
+        .to_string()
+}
+
+/// A folder with the test CA (`ca.pem`), the server's certificate and key (`server.pem`,
+/// `server.key`) and a token file (`token`: s3cret).
+fn tls_folder() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let (ca, cert, key) = certificates();
+    std::fs::write(dir.path().join("ca.pem"), ca).unwrap();
+    std::fs::write(dir.path().join("server.pem"), cert).unwrap();
+    std::fs::write(dir.path().join("server.key"), key).unwrap();
+    std::fs::write(dir.path().join("token"), "s3cret\n").unwrap();
+    dir
+}
+
+/// `scatterfarm coordinator` on the data folder `data` of `dir`, with its token, TLS files,
+/// `--http http` and `extra`.
+fn tls_coordinator(dir: &Path, data: &str, http: &str, extra: &[&str]) -> std::process::Command {
+    let mut c = scatterfarm();
+    c.env("RUST_LOG", "info")
+        .current_dir(dir)
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--data", data])
+        .args(["--token-file", "token"])
+        .args(["--tls-cert", "server.pem", "--tls-key", "server.key"])
+        .args(["--http", http])
+        .args(extra);
+    c
+}
+
+#[test]
+fn with_tls_the_web_face_serves_https_with_the_grpc_certificate_and_refuses_plain_http() {
+    let dir = tls_folder();
+    let ca = std::fs::read_to_string(dir.path().join("ca.pem")).unwrap();
+    let port = free_port();
+    let c = tls_coordinator(
+        dir.path(),
+        "data",
+        &format!("127.0.0.1:{port}"),
+        &["--address-file", "address"],
+    );
+    let mut coordinator = Proc::logged(c, &dir.path().join("coordinator.log"));
+    // Prove it: gRPC is TLS, with the CA.
+    let url = wait_for_file(&dir.path().join("address"));
+    assert!(url.starts_with("https://"), "{url}");
+    let mut jobs = scatterfarm();
+    jobs.current_dir(dir.path())
+        .args(["jobs", "--json", "--coordinator", &url])
+        .args(["--tls-ca", "ca.pem", "--token-file", "token"]);
+    assert_eq!(output(jobs).ok().trim(), "[]");
+
+    // HTTPS on the --http port, the token asked for as over plain HTTP.
+    let get = |path: &str, headers: &[&str]| https(port, &ca, "GET", path, headers, "");
+    for path in [
+        "/",
+        "/metrics",
+        "/jobs/j1/map.png",
+        "/jobs/j1/convergence.svg",
+    ] {
+        let r = get(path, &["Accept: text/html"]);
+        assert_eq!(r.status, 401, "{path} without the token: {}", r.body);
+    }
+    let r = get("/metrics", &["Authorization: Bearer nope"]);
+    assert_eq!(r.status, 401, "{}", r.body);
+    let r = get("/metrics", &["Authorization: Bearer s3cret"]);
+    assert_eq!(r.status, 200, "{}", r.body);
+    assert!(r.body.contains("scatterfarm_jobs"), "{}", r.body);
+
+    // The login cookie is Secure: a browser sends it back over HTTPS only.
+    let form = "Content-Type: application/x-www-form-urlencoded";
+    let r = https(port, &ca, "POST", "/login", &[form], "token=s3cret");
+    assert_eq!(r.status, 303, "{}", r.headers);
+    let cookie = set_cookie(&r);
+    for attribute in ["HttpOnly", "SameSite=Strict", "Secure"] {
+        assert!(
+            cookie.split(';').any(|a| a.trim() == attribute),
+            "{attribute} missing: {cookie}"
+        );
+    }
+    let pair = cookie.split(';').next().unwrap();
+    let r = get("/", &[&format!("Cookie: {pair}")]);
+    assert_eq!(r.status, 200, "{}", r.body);
+    assert!(r.body.contains("Workers"), "{}", r.body);
+
+    // Plain HTTP on the same port, even with the right token, gets a refusal and no page.
+    let r = http(
+        port,
+        "GET",
+        "/metrics",
+        &["Authorization: Bearer s3cret"],
+        "",
+    );
+    assert_eq!(r.status, 400, "{}", r.body);
+    assert!(r.body.contains("https://"), "{}", r.body);
+    assert!(!r.body.contains("scatterfarm_jobs"), "{}", r.body);
+    // A connection that never says anything does not hold up the others.
+    let silent = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let r = get("/metrics", &["Authorization: Bearer s3cret"]);
+    assert_eq!(r.status, 200, "{}", r.body);
+    drop(silent);
+    let log = coordinator.log_text();
+    assert!(
+        log.contains(&format!("status page on https://127.0.0.1:{port}/")),
+        "{log}"
+    );
+
+    // SIGTERM still stops the web face with the rest: the port closes.
+    coordinator.signal("TERM");
+    let status = coordinator.wait_exit(Duration::from_secs(60));
+    assert!(status.success(), "{status}:\n{}", coordinator.log_text());
+    assert!(
+        std::net::TcpStream::connect(("127.0.0.1", port)).is_err(),
+        "the HTTPS port is still open after the coordinator stopped"
+    );
+}
+
+#[test]
+fn http_plaintext_opts_out_of_tls_with_a_warning_and_bad_tls_files_are_named() {
+    let dir = tls_folder();
+    // Off loopback, plain HTTP next to gRPC's TLS: served, with a warning.
+    let port = free_port();
+    let c = tls_coordinator(
+        dir.path(),
+        "data",
+        &format!("0.0.0.0:{port}"),
+        &["--http-plaintext"],
+    );
+    let coordinator = Proc::logged(c, &dir.path().join("plaintext.log"));
+    let r = http(
+        port,
+        "GET",
+        "/metrics",
+        &["Authorization: Bearer s3cret"],
+        "",
+    );
+    assert_eq!(r.status, 200, "{}", r.body);
+    let r = http(port, "GET", "/metrics", &[], "");
+    assert_eq!(r.status, 401, "{}", r.body);
+    let form = "Content-Type: application/x-www-form-urlencoded";
+    let r = http(port, "POST", "/login", &[form], "token=s3cret");
+    assert!(!set_cookie(&r).contains("Secure"), "{}", r.headers);
+    let log = coordinator.log_text();
+    assert!(
+        log.contains("--http-plaintext") && log.contains("in the clear"),
+        "no warning about plain HTTP:\n{log}"
+    );
+    drop(coordinator);
+
+    // A certificate or key that cannot be read or parsed is named, and nothing starts.
+    std::fs::write(dir.path().join("garbage.pem"), "not a certificate\n").unwrap();
+    let (_, _, other_key) = certificates();
+    std::fs::write(dir.path().join("other.key"), other_key).unwrap();
+    let limit = Duration::from_secs(60);
+    for (cert, key, named, why) in [
+        (
+            "garbage.pem",
+            "server.key",
+            "garbage.pem",
+            "no PEM certificate",
+        ),
+        ("missing.pem", "server.key", "missing.pem", "cannot read"),
+        (
+            "server.pem",
+            "server.pem",
+            "server.pem",
+            "no PEM private key",
+        ),
+        ("server.pem", "other.key", "other.key", "does not belong"),
+    ] {
+        let mut c = scatterfarm();
+        c.current_dir(dir.path())
+            .args(["coordinator", "--listen", "127.0.0.1:0", "--data", "bad"])
+            .args(["--tls-cert", cert, "--tls-key", key])
+            .args(["--http", &format!("127.0.0.1:{}", free_port())]);
+        let stderr = run(c, dir.path(), limit).fails();
+        assert!(
+            stderr.contains(named) && stderr.contains(why),
+            "{cert} + {key}: {stderr}"
+        );
+    }
 }

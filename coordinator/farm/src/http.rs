@@ -7,12 +7,14 @@
 //! Everything is read from one snapshot of the [`Scheduler`] taken under its lock; pages, metrics
 //! and maps are built after the lock is released, and a job's map is encoded once per state of
 //! its progress (cached by its renders done). With a token, every path needs it
-//! ([`crate::http_auth`]).
+//! ([`crate::http_auth`]). With [`WebTls`] (the coordinator's `--tls-cert`/`--tls-key`) it
+//! serves HTTPS only ([`crate::http_tls`]).
 
 use super::scheduler::Scheduler;
 use super::service::Farm;
 use super::status::{all_statuses, duration_text, state_name};
-use crate::http_auth::{self, WebToken};
+use crate::http_auth::{self, LoginSettings, WebToken};
+use crate::http_tls::{TlsListener, WebTls};
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
 use axum::http::{header, StatusCode};
@@ -503,12 +505,20 @@ async fn convergence_svg(State(web): State<Web>, Path(id): Path<String>) -> Resp
     }
 }
 
-/// Serves the web face on `addr` until `shutdown` resolves, asking for `token` when it is set;
-/// returns the bound address and the serving future.
+/// The web face's listener: plain HTTP, or HTTPS.
+enum Listening {
+    Http(tokio::net::TcpListener),
+    Https(TlsListener),
+}
+
+/// Serves the web face on `addr` until `shutdown` resolves, asking for `token` when it is set,
+/// over HTTPS with `tls` (else plain HTTP); returns the bound address and the serving future.
+/// On shutdown it stops accepting and waits for the requests in flight.
 pub async fn start(
     addr: SocketAddr,
     farm: Arc<Farm>,
     token: Option<String>,
+    tls: Option<WebTls>,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(SocketAddr, impl std::future::Future<Output = Result<()>>)> {
     let rates = Arc::new(Mutex::new(Rates::default()));
@@ -542,17 +552,25 @@ pub async fn start(
         });
     let login = Router::new()
         .route("/login", get(http_auth::login_form).post(http_auth::login))
-        .with_state(token);
+        .with_state(LoginSettings {
+            token,
+            secure_cookie: tls.is_some(),
+        });
     let app = pages.merge(login);
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .with_context(|| format!("cannot listen on {addr} (--http)"))?;
     let bound = listener.local_addr()?;
+    let listener = match &tls {
+        Some(tls) => Listening::Https(TlsListener::new(listener, tls)?),
+        None => Listening::Http(listener),
+    };
     let serving = async move {
-        axum::serve(listener, app)
-            .with_graceful_shutdown(shutdown)
-            .await
-            .context("the HTTP server failed")
+        let served = match listener {
+            Listening::Https(l) => axum::serve(l, app).with_graceful_shutdown(shutdown).await,
+            Listening::Http(l) => axum::serve(l, app).with_graceful_shutdown(shutdown).await,
+        };
+        served.context("the HTTP server failed")
     };
     Ok((bound, serving))
 }

@@ -2,8 +2,8 @@
 //! every map need it, presented as gRPC takes it (`Authorization: Bearer <token>`, as Prometheus
 //! sends it with `authorization: { credentials_file: ... }`) or as the `scatterfarm_token`
 //! cookie, which `/login` sets from a form (an HttpOnly, SameSite=Strict cookie, so a browser
-//! sends it to this coordinator only). Without a token, or with `--http-open`, nothing is
-//! checked.
+//! sends it to this coordinator only; `Secure` when the web face serves HTTPS, so a browser never
+//! sends it over plain HTTP). Without a token, or with `--http-open`, nothing is checked.
 
 use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -78,6 +78,14 @@ pub async fn require(State(token): State<WebToken>, request: Request, next: Next
     }
 }
 
+/// What `/login` needs: the token, and whether the web face serves HTTPS (then the cookie is
+/// `Secure`).
+#[derive(Clone, Default)]
+pub struct LoginSettings {
+    pub token: WebToken,
+    pub secure_cookie: bool,
+}
+
 /// The login form's field.
 #[derive(serde::Deserialize)]
 pub struct Login {
@@ -90,15 +98,21 @@ pub async fn login_form() -> Html<&'static str> {
 }
 
 /// `POST /login`: sets the cookie when the token is right, and goes to the status page.
-pub async fn login(State(token): State<WebToken>, Form(login): Form<Login>) -> Response {
+pub async fn login(State(settings): State<LoginSettings>, Form(login): Form<Login>) -> Response {
+    let token = &settings.token;
     let t = login.token.trim();
     if token.0.is_none() || !token.accepts(t) || t.contains([';', ',', ' ']) {
         return (StatusCode::UNAUTHORIZED, Html(LOGIN_FORM)).into_response();
     }
+    let secure = if settings.secure_cookie {
+        "; Secure"
+    } else {
+        ""
+    };
     (
         [(
             header::SET_COOKIE,
-            format!("{COOKIE}={t}; HttpOnly; SameSite=Strict; Path=/"),
+            format!("{COOKIE}={t}; HttpOnly; SameSite=Strict; Path=/{secure}"),
         )],
         Redirect::to("/"),
     )

@@ -18,9 +18,11 @@
 //! - [`server`]: serving them with TLS, token, health, reflection and a graceful drain.
 //! - [`http`]: the web face: Prometheus metrics and a status page.
 //! - [`http_auth`]: the web face's token check (bearer header or a cookie set at `/login`).
+//! - [`http_tls`]: the web face over HTTPS with gRPC's certificate and key.
 
 pub mod http;
 pub mod http_auth;
+pub mod http_tls;
 pub mod job;
 pub mod scheduler;
 pub mod server;

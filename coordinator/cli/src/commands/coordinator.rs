@@ -5,6 +5,7 @@ use super::connect::load_token;
 use anyhow::{ensure, Context, Result};
 use clap::Args;
 use scatterfarm_coordinator::http;
+use scatterfarm_coordinator::http_tls::WebTls;
 use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use std::net::SocketAddr;
@@ -52,16 +53,23 @@ pub struct CoordinatorArgs {
     /// On SIGTERM, wait this long for leased tasks to come back before stopping.
     #[arg(long, default_value_t = 60.0)]
     pub drain_seconds: f64,
-    /// Serve the status page (`/`) and Prometheus metrics (`/metrics`) over HTTP on this
-    /// address, e.g. 0.0.0.0:8080 (off unless given).
+    /// Serve the status page (`/`) and Prometheus metrics (`/metrics`) on this address, e.g.
+    /// 0.0.0.0:8080 (off unless given).
     /// With a token, every path of it needs the token: an `Authorization: Bearer` header (as
-    /// Prometheus sends it) or a cookie a browser gets at `/login`. It is plain HTTP: bind it
-    /// to loopback, or put a TLS proxy in front, when the token must not cross a network.
+    /// Prometheus sends it) or a cookie a browser gets at `/login`. With --tls-cert/--tls-key
+    /// it serves HTTPS with the same certificate and key (and plain HTTP requests are refused);
+    /// without them it is plain HTTP: bind it to loopback, or put a TLS proxy in front, when the
+    /// token must not cross a network.
     #[arg(long)]
     pub http: Option<SocketAddr>,
     /// Serve --http without asking for the token (anyone who reaches it sees every job).
     #[arg(long)]
     pub http_open: bool,
+    /// Serve --http as plain HTTP even though gRPC has TLS, e.g. behind a proxy that terminates
+    /// TLS for it (off loopback the coordinator warns that the token crosses the network in the
+    /// clear).
+    #[arg(long, requires = "http")]
+    pub http_plaintext: bool,
     /// Write the coordinator's URL to this file once it listens (for scripts; with --listen
     /// on port 0 it holds the port chosen).
     #[arg(long)]
@@ -116,6 +124,19 @@ impl CoordinatorArgs {
             drain_timeout: Duration::from_secs_f64(self.drain_seconds),
         })
     }
+
+    /// The web face's TLS, from `config`'s certificate and key (None without them, or with
+    /// --http-plaintext). The certificate and key are parsed even without --http, so a bad file
+    /// is named before gRPC starts.
+    pub fn web_tls(&self, config: &ServerConfig) -> Result<Option<WebTls>> {
+        let (Some((cert, key)), Some(cert_file), Some(key_file)) =
+            (&config.tls, &self.tls_cert, &self.tls_key)
+        else {
+            return Ok(None);
+        };
+        let tls = WebTls::from_pem(cert, cert_file, key, key_file)?;
+        Ok((!self.http_plaintext).then_some(tls))
+    }
 }
 
 pub fn run(args: CoordinatorArgs) -> Result<()> {
@@ -126,6 +147,7 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
     } else {
         config.token.clone()
     };
+    let web_tls = args.web_tls(&config)?;
     if let Some(addr) = args.http {
         if !addr.ip().is_loopback() {
             if web_token.is_none() {
@@ -133,10 +155,18 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                     "the status page on {addr} asks for no token: anyone who can reach it sees \
                      every job"
                 );
-            } else {
+            }
+            if tls && web_tls.is_none() {
+                tracing::warn!(
+                    "the status page on {addr} is plain HTTP (--http-plaintext) while gRPC has \
+                     TLS: its token and pages cross the network in the clear unless a TLS proxy \
+                     in front of it is all that reaches it"
+                );
+            } else if !tls && web_token.is_some() {
                 tracing::warn!(
                     "the status page on {addr} is plain HTTP: its token crosses the network in \
-                     the clear (bind it to loopback, or put a TLS proxy in front)"
+                     the clear (bind it to loopback, put a TLS proxy in front, or give the \
+                     coordinator --tls-cert and --tls-key)"
                 );
             }
         }
@@ -156,14 +186,16 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                 .map_err(|e| in_use(e, &args.data))?;
             let web = match args.http {
                 Some(addr) => {
+                    let scheme = if web_tls.is_some() { "https" } else { "http" };
                     let (bound, web) = http::start(
                         addr,
                         running.farm.clone(),
                         web_token,
+                        web_tls,
                         server::stopped(stop_rx),
                     )
                     .await?;
-                    tracing::info!("status page on http://{bound}/ (metrics on /metrics)");
+                    tracing::info!("status page on {scheme}://{bound}/ (metrics on /metrics)");
                     Some(tokio::spawn(web))
                 }
                 None => None,

@@ -113,7 +113,7 @@ pub fn run_embedded(
             let serving = tokio::spawn(serving);
             if let Some(addr) = http {
                 let (bound, web) =
-                    scatterfarm_coordinator::http::start(addr, running.farm.clone(), None, until_stop(stop_rx.clone()))
+                    scatterfarm_coordinator::http::start(addr, running.farm.clone(), None, None, until_stop(stop_rx.clone()))
                         .await?;
                 eprintln!("status page: http://{bound}/");
                 tokio::spawn(web);
