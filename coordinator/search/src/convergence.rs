@@ -53,12 +53,13 @@ pub struct Point {
     pub map: Vec<u16>,
 }
 
-/// How many stages `search` has ended: its finished levels, then its sweeps.
+/// How many stages `search` has ended: its finished levels, then its sweeps (a sweep ends
+/// with its confirmation).
 pub fn stages_ended(search: &Search) -> usize {
-    search.levels().len() + search.refinement().map_or(0, |r| r.history().len())
+    search.levels().len() + search.refinement().map_or(0, |r| r.sweeps_done())
 }
 
-/// The curve of `search` so far, in order: every level, then every sweep.
+/// The curve of `search` so far, in order: every level, then every sweep that has ended.
 pub fn curve(search: &Search) -> Vec<Point> {
     let spent = search.spent();
     let levels = search
@@ -67,7 +68,7 @@ pub fn curve(search: &Search) -> Vec<Point> {
         .map(|l| (Stage::Level(l.level), l.score, &l.assignment));
     let sweeps = search
         .refinement()
-        .map(|r| r.history())
+        .map(|r| &r.history()[..r.sweeps_done()])
         .unwrap_or_default()
         .iter()
         .map(|s| (Stage::Sweep(s.sweep), s.score, &s.map));

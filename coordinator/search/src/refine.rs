@@ -283,9 +283,15 @@ impl Refinement {
         (&self.current, self.current_score)
     }
 
-    /// The finished sweeps.
+    /// The sweeps so far (the last one's confirmation may still be pending).
     pub fn history(&self) -> &[SweepRecord] {
         &self.history
+    }
+
+    /// How many sweeps have ended: confirmed (or found nothing to confirm).
+    pub fn sweeps_done(&self) -> usize {
+        let confirming = matches!(self.waiting, Some(Waiting::Confirm { .. }));
+        self.history.len() - usize::from(confirming && !self.history.is_empty())
     }
 
     pub fn config(&self) -> &RefineConfig {
