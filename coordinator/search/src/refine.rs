@@ -425,22 +425,36 @@ impl Refinement {
         });
     }
 
-    /// The filled base of the current map `M`: `M` with every opaque pixel set to the
-    /// background (`docs/model.md`, "The filled base"). Nothing reweights out of an opaque
+    /// The filled base of the current map `M`: `M` with every opaque pixel (and every pixel
+    /// nothing reweights out of) set to the background (`docs/model.md`, "The filled base"). Nothing reweights out of an opaque
     /// pixel, so a differential render of `M` cannot estimate clearing one; a render of the
     /// base can estimate `M` (its opaque pixels back: weight 0 for every photon that entered
     /// them, exact) and every change of `M`, clearing included, on the same photons. `None`
     /// when `M` has no opaque pixel, or its background is opaque.
     fn filled_base(&self) -> Option<Base> {
         let opaque = |m: u16| self.opaque.get(usize::from(m)).copied().unwrap_or(false);
+        let reweights = |from: u16, to: u16| {
+            self.reweightable
+                .get(usize::from(from))
+                .and_then(|row| row.get(usize::from(to)))
+                .copied()
+                .unwrap_or(false)
+        };
         let background = self.background();
         if opaque(background) {
             return None;
         }
+        // Opaque pixels, and any other whose material nothing reweights out of to the
+        // background while the background reweights into it (a non-scattering pixel in a
+        // scattering background: its crossings are reweighted, unbiased, noisier).
+        let filled = |m: u16| {
+            m != background
+                && (opaque(m) || (!reweights(m, background) && reweights(background, m)))
+        };
         let mut map = self.current.clone();
         let mut pixels = Vec::new();
         for (p, m) in map.iter_mut().enumerate() {
-            if opaque(*m) {
+            if filled(*m) {
                 pixels.push((p as u32, *m));
                 *m = background;
             }
@@ -1113,6 +1127,39 @@ mod tests {
         assert_eq!(r.current().0, &truth[..]);
         let direct = run(&truth, vec![0; 16], vec![0, 1, 2]);
         assert_eq!(r.current().0, direct.current().0);
+    }
+
+    /// A pixel whose material nothing reweights out of to the background (3, like a
+    /// non-scattering one in a scattering background) is filled too, opaque or not.
+    #[test]
+    fn non_scattering_pixels_are_filled_too() {
+        let mut start = vec![0u16; 16];
+        start[3] = 3;
+        start[9] = 1;
+        let reweightable = vec![
+            vec![true, true, true, true],
+            vec![true, true, true, true],
+            vec![false, false, true, false],
+            vec![false, false, true, true],
+        ];
+        let cfg = RefineConfig {
+            screen: Screen::Differential,
+            ..config()
+        };
+        let r = Refinement::new(
+            cfg,
+            4,
+            vec![0, 1, 3],
+            1,
+            start.clone(),
+            reweightable,
+            vec![false, false, true, false],
+        );
+        let mut base = start;
+        base[3] = 0;
+        assert_eq!(r.pending().len(), 1, "nothing rendered directly");
+        assert_eq!(r.pending()[0].assignment, base);
+        assert_eq!(r.pending()[0].changes[0].pixels, vec![(3, 3)]);
     }
 
     /// With an opaque material (2: nothing reweights out of it), a differential sweep renders
