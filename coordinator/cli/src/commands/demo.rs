@@ -192,7 +192,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         Some(args.http),
     )?;
     eprintln!(
-        "done: similarity {:.4}, pixel accuracy {:.1} %, {} renders on {}.\nThe result is in {}: reconstruction.png (truth | reconstruction | wrong pixels), maps.png, materials.npy, report.json",
+        "done: similarity {:.4}, pixel accuracy {:.1} %, {} renders on {}.\nThe result is in {}: reconstruction.png (truth | reconstruction | wrong pixels), maps.png, convergence.png (score and accuracy against photons), materials.npy, report.json",
         report.similarity,
         report.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
         report.renders,
