@@ -427,10 +427,11 @@ impl Refinement {
 
     /// The filled base of the current map `M`: `M` with every opaque pixel (and every pixel
     /// nothing reweights out of) set to the background (`docs/model.md`, "The filled base").
-    /// Nothing reweights out of an opaque pixel, so a differential render of `M` cannot estimate clearing one; a render of the
-    /// base can estimate `M` (its opaque pixels back: weight 0 for every photon that entered
-    /// them, exact) and every change of `M`, clearing included, on the same photons. `None`
-    /// when `M` has no opaque pixel, or its background is opaque.
+    /// Nothing reweights out of an opaque pixel, so a differential render of `M` cannot
+    /// estimate clearing one; a render of the base can estimate `M` (its opaque pixels back:
+    /// weight 0 for every photon that entered them, exact) and every change of `M`, clearing
+    /// included, on the same photons. `None` when `M` has no pixel to fill, or its background
+    /// is opaque.
     fn filled_base(&self) -> Option<Base> {
         let opaque = |m: u16| self.opaque.get(usize::from(m)).copied().unwrap_or(false);
         let reweights = |from: u16, to: u16| {
