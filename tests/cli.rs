@@ -330,4 +330,28 @@ fn the_quality_bench_takes_scene_paths_and_checks_the_truth() {
     if run["pixel_accuracy"] == 1.0 {
         assert_eq!(margin, 0.0, "the map found is the truth: {run}");
     }
+    // The truth's one-pixel neighbours: the 12 non-opaque pixels' changes are estimated from
+    // one differential render (nothing reweights out of the 4 opaque ones), and the target
+    // tells some of them from the truth.
+    let count = |key: &str| {
+        run[key]
+            .as_u64()
+            .unwrap_or_else(|| panic!("no {key}: {run}"))
+    };
+    let (estimated, unresolved) = (
+        count("neighbours_estimated"),
+        count("neighbours_unresolved"),
+    );
+    assert!(estimated >= 12 && estimated % 12 == 0, "{run}");
+    assert!(
+        unresolved < estimated,
+        "no neighbour is told from the truth: {run}"
+    );
+    let accuracy = run["pixel_accuracy"].as_f64().unwrap();
+    let wrong = count("wrong_pixels");
+    assert_eq!(wrong, ((1.0 - accuracy) * 16.0).round() as u64, "{run}");
+    assert!(
+        count("wrong_told") + count("wrong_untold") <= wrong,
+        "{run}"
+    );
 }

@@ -5,21 +5,25 @@
 #
 #   SCENES=fig7b,fig7c SEEDS=1 SEARCHES=likelihood-differential LIMIT=900 bash tests/bench/quality-each.sh
 #
-# The searches and their settings are in searches.sh.
+# The searches and their settings are in searches.sh. BIN=path runs that binary instead of
+# building one, so a long queue keeps measuring one build while the tree changes.
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 SCENES=${SCENES:-fig7a,fig7b,fig7c,fig7d,fig7e,fig7f,fig7g,fig7h,fig7i,fig7j,fig7k,fig7l,phantom16}
 SEEDS=${SEEDS:-1}
 SEARCHES=${SEARCHES:-likelihood-differential paper}
 LIMIT=${LIMIT:-900}
-cargo build --release -q || exit 1
+if [ -z "${BIN:-}" ]; then
+  cargo build --release -q || exit 1
+  BIN=target/release/scatterfarm
+fi
 mkdir -p tests/bench/quality
 source tests/bench/searches.sh
 for search in $SEARCHES; do
   search_flags "$search"
   for scene in ${SCENES//,/ }; do
     name="tests/bench/quality/$search-$scene-seeds${SEEDS//,/-}"
-    timeout "$LIMIT" target/release/scatterfarm bench reconstruct --engine cpu --scenes "$scene" \
+    timeout "$LIMIT" "$BIN" bench reconstruct --engine cpu --scenes "$scene" \
       --seeds "$SEEDS" "${flags[@]}" --out "$name.json" >/dev/null 2>"$name.log"
     rc=$?
     [ $rc -eq 124 ] && echo "stopped after $LIMIT s" >>"$name.log"

@@ -3,24 +3,81 @@
 //! their likelihoods compared (paired, `docs/model.md`, "Likelihood"). A truth that scores
 //! clearly better than the map found means the search stopped short; a truth that does not
 //! means the target's photons cannot tell the two apart.
+//!
+//! The truth's one-pixel neighbours sharpen that per pixel ([`Neighbours`]): one differential
+//! render of the truth estimates every map that differs from it in one pixel, and each wrong
+//! pixel of the map found is then either resolved (the truth beats the truth with that pixel
+//! as the map has it by at least [`RESOLVED_Z`] paired standard errors: the target tells, the
+//! search missed it) or not (information).
 
 use crate::plan::Plan;
 use anyhow::{Context, Result};
-use scatterfarm_model::Engine;
-use scatterfarm_search::driver::{render_one, Scoring};
+use scatterfarm_model::differential::{change_is_reweightable, Change};
+use scatterfarm_model::{Engine, EngineError, RenderItem};
+use scatterfarm_search::driver::{render_differential, render_one, Scoring};
 use scatterfarm_search::likelihood::{self, paired};
 use scatterfarm_search::seeds::{self, Stream};
 use serde::{Deserialize, Serialize};
 
+/// A margin, in paired standard errors, from which the target is taken to tell two maps apart.
+pub const RESOLVED_Z: f64 = 2.0;
+
+/// At most this many bytes of change estimates per differential render of the neighbours.
+const NEIGHBOUR_BYTES: usize = 128 << 20;
+
 /// The truth against a map, on common photons.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TruthCheck {
-    /// Photons per source of the two renders.
+    /// Photons per source of the renders.
     pub photons: u32,
     /// The truth's log-likelihood score minus the map's (positive: the truth fits better),
     /// and the paired standard error of that difference.
     pub margin: f64,
     pub std_error: f64,
+    /// The truth's one-pixel neighbours, where the engine renders differentially.
+    pub neighbours: Option<Neighbours>,
+}
+
+/// The truth's one-pixel neighbours (each pixel set to each other material of the search's
+/// table), estimated from one differential render of the truth on the check's photons.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Neighbours {
+    /// Neighbours estimated.
+    pub estimated: usize,
+    /// Neighbours a render of the truth cannot estimate (out of an opaque pixel, or from a
+    /// non-scattering pixel to a scattering material).
+    pub not_estimated: usize,
+    /// Estimated neighbours the truth does not beat by [`RESOLVED_Z`] standard errors.
+    pub unresolved: usize,
+    /// The map's wrong pixels, each with the truth's margin in standard errors over the truth
+    /// with that one pixel as the map has it (`None`: not estimated).
+    pub wrong: Vec<WrongPixel>,
+}
+
+/// One wrong pixel of the map found.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WrongPixel {
+    /// Row-major index, row 0 at the top.
+    pub pixel: u32,
+    pub z: Option<f64>,
+}
+
+impl Neighbours {
+    /// Wrong pixels the target tells (z ≥ [`RESOLVED_Z`]): the search missed them.
+    pub fn wrong_resolved(&self) -> usize {
+        self.wrong
+            .iter()
+            .filter(|w| w.z.is_some_and(|z| z >= RESOLVED_Z))
+            .count()
+    }
+
+    /// Wrong pixels the target does not tell (z < [`RESOLVED_Z`]): information.
+    pub fn wrong_unresolved(&self) -> usize {
+        self.wrong
+            .iter()
+            .filter(|w| w.z.is_some_and(|z| z < RESOLVED_Z))
+            .count()
+    }
 }
 
 impl TruthCheck {
@@ -75,9 +132,86 @@ pub fn check(
     };
     let (t, f) = (score(&truth)?, score(found)?);
     let (margin, std_error) = paired(&t.blocks, &f.blocks).context("too few observations")?;
+    let neighbours = neighbours(scoring, engine, &table, &truth, found, seed, photons, &t)?;
     Ok(Some(TruthCheck {
         photons,
         margin,
         std_error,
+        neighbours,
+    }))
+}
+
+/// The truth's one-pixel neighbours against the truth (whose plain deviance on the same seed
+/// and photons is `truth_score`); `None` when the engine does not render differentially.
+#[allow(clippy::too_many_arguments)]
+fn neighbours(
+    scoring: &Scoring,
+    engine: &dyn Engine,
+    table: &[scatterfarm_model::Material],
+    truth: &[u16],
+    found: &[u16],
+    seed: u64,
+    photons: u32,
+    truth_score: &likelihood::Deviance,
+) -> Result<Option<Neighbours>> {
+    let materials = table.len() as u16;
+    let all: Vec<Change> = (0..truth.len() as u32)
+        .flat_map(|p| {
+            (0..materials)
+                .filter(move |&d| d != truth[p as usize])
+                .map(move |d| Change {
+                    pixels: vec![(p, d)],
+                })
+        })
+        .collect();
+    let (estimable, not_estimated): (Vec<Change>, Vec<Change>) = all
+        .into_iter()
+        .partition(|c| change_is_reweightable(table, truth, c));
+    let observations = scoring.target.values.len().max(1);
+    let per_render = (NEIGHBOUR_BYTES / (observations * 8)).max(1);
+    let item = RenderItem {
+        assignment: truth.to_vec(),
+        seed,
+    };
+    let n = u64::from(photons);
+    let mut z_of = std::collections::BTreeMap::new();
+    for changes in estimable.chunks(per_render) {
+        let output =
+            match render_differential(engine, scoring, table, &item, photons, changes, &mut |_| {})
+            {
+                Ok(o) => o,
+                Err(e)
+                    if e.chain().any(|c| {
+                        matches!(
+                            c.downcast_ref::<EngineError>(),
+                            Some(EngineError::Unsupported(_))
+                        )
+                    }) =>
+                {
+                    return Ok(None)
+                }
+                Err(e) => return Err(e.context("the truth's neighbours")),
+            };
+        for (change, delta) in changes.iter().zip(&output.deltas) {
+            let Some(delta) = delta else { continue };
+            let d = likelihood::deviance_reweighted(&scoring.target, &output.counts, delta, n)?;
+            if let Some((margin, se)) = paired(&truth_score.blocks, &d.blocks) {
+                let z = if se > 0.0 { margin / se } else { 0.0 };
+                z_of.insert(change.pixels[0], z);
+            }
+        }
+    }
+    let wrong = (0..truth.len())
+        .filter(|&p| found.get(p).is_some_and(|&f| f != truth[p]))
+        .map(|p| WrongPixel {
+            pixel: p as u32,
+            z: z_of.get(&(p as u32, found[p])).copied(),
+        })
+        .collect();
+    Ok(Some(Neighbours {
+        estimated: z_of.len(),
+        not_estimated: not_estimated.len(),
+        unresolved: z_of.values().filter(|&&z| z < RESOLVED_Z).count(),
+        wrong,
     }))
 }

@@ -242,7 +242,7 @@ pub fn drive(
 
 /// Renders `item` differentially over photons `[0, photons)`, in chunks of the scoring's
 /// chunk size (their results add up to one render of the whole range).
-fn render_differential(
+pub fn render_differential(
     engine: &dyn Engine,
     scoring: &Scoring,
     table: &[Material],

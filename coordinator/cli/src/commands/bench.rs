@@ -196,6 +196,17 @@ pub struct QualityRow {
     /// tells; a margin near 0 means the target cannot tell the two apart.
     pub truth_margin: Option<f64>,
     pub truth_margin_z: Option<f64>,
+    /// The truth's one-pixel neighbours on the check's photons (where the engine renders
+    /// differentially): how many were estimated, and how many of those the truth does not
+    /// beat by 2 paired standard errors (the target cannot tell them from the truth).
+    pub neighbours_estimated: Option<usize>,
+    pub neighbours_unresolved: Option<usize>,
+    /// The map's wrong pixels, split by their one-pixel neighbour of the truth: `told`, the
+    /// truth beats it by 2 standard errors or more (the search missed it); `untold`, it does
+    /// not (the information is not there at these photons); the rest were not estimated.
+    pub wrong_pixels: Option<usize>,
+    pub wrong_told: Option<usize>,
+    pub wrong_untold: Option<usize>,
 }
 
 /// A scene's rows averaged over the seeds.
@@ -340,7 +351,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
     let mut rows = Vec::new();
     eprintln!(
-        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9} {:>8}",
+        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9} {:>8} {:>12}",
         "scene",
         "seed",
         "accuracy",
@@ -350,7 +361,8 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         "renders",
         "photons",
         "seconds",
-        "truth z"
+        "truth z",
+        "wrong (told)"
     );
     let mut config = None;
     for &seed in &args.seeds {
@@ -370,6 +382,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 (args.check_photons > 0).then_some(args.check_photons),
             )
             .with_context(|| format!("{scene}, seed {seed}"))?;
+            let neighbours = check.as_ref().and_then(|c| c.neighbours.as_ref());
             let row = QualityRow {
                 scene: scene.clone(),
                 seed,
@@ -383,11 +396,16 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 photons: report.photons,
                 photons_simulated: report.photons_simulated,
                 wall_seconds: report.wall_seconds,
-                truth_margin: check.map(|c| c.margin),
-                truth_margin_z: check.map(|c| c.z()),
+                truth_margin: check.as_ref().map(|c| c.margin),
+                truth_margin_z: check.as_ref().map(|c| c.z()),
+                neighbours_estimated: neighbours.map(|n| n.estimated),
+                neighbours_unresolved: neighbours.map(|n| n.unresolved),
+                wrong_pixels: neighbours.map(|n| n.wrong.len()),
+                wrong_told: neighbours.map(|n| n.wrong_resolved()),
+                wrong_untold: neighbours.map(|n| n.wrong_unresolved()),
             };
             eprintln!(
-                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1}",
+                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1} {:>12}",
                 row.scene,
                 seed,
                 row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
@@ -397,7 +415,11 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 row.renders,
                 row.photons,
                 row.wall_seconds,
-                row.truth_margin_z.unwrap_or(f64::NAN)
+                row.truth_margin_z.unwrap_or(f64::NAN),
+                match (row.wrong_pixels, row.wrong_told) {
+                    (Some(w), Some(t)) => format!("{w} ({t})"),
+                    _ => "-".to_string(),
+                }
             );
             config.get_or_insert(report.configuration);
             rows.push(row);
