@@ -76,7 +76,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
                     render_seconds: 0.01,
                 };
                 // A result may be refused as no longer needed once its job paused.
-                let _ = s.complete(
+                let _ = s.complete_and_score(
                     &worker,
                     &task.job,
                     task.piece.task_id,

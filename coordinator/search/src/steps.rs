@@ -270,20 +270,32 @@ impl Steps {
         items: &[GroupItem],
         counts: Vec<CountMatrix>,
     ) -> Result<Vec<NewScore>> {
+        let scores = score_group(scoring, photons, &counts)?;
+        self.keep(search, photons, items, counts, scores)
+    }
+
+    /// Keeps a group's scores, made by [`score_group`] from its complete `counts` (the farm
+    /// scores away from its scheduler's lock); returns the new scores.
+    pub fn keep(
+        &mut self,
+        search: &Search,
+        photons: u32,
+        items: &[GroupItem],
+        counts: Vec<CountMatrix>,
+        scores: Vec<Score>,
+    ) -> Result<Vec<NewScore>> {
         anyhow::ensure!(
-            items.len() == counts.len(),
-            "{} count matrices for {} renders",
+            items.len() == counts.len() && items.len() == scores.len(),
+            "{} count matrices and {} scores for {} renders",
             counts.len(),
+            scores.len(),
             items.len()
         );
         let step = search.pending().first().map(|r| r.index).unwrap_or(0);
         let level = search.progress().level;
         let full = search.config().photons.level(level);
         let mut new = Vec::with_capacity(items.len());
-        for (item, counts) in items.iter().zip(counts) {
-            let score = scoring
-                .score(&counts, photons)
-                .with_context(|| format!("scoring a render of {photons} photons per source"))?;
+        for ((item, counts), score) in items.iter().zip(counts).zip(scores) {
             self.scores.insert(item.identity, (score.clone(), step));
             new.push((item.identity, score, step));
             if photons < full && level == self.prefix_level {
@@ -323,6 +335,19 @@ impl Steps {
         new.push((item.identity, score, step));
         Ok(new)
     }
+}
+
+/// The scores of a group's complete counts (photons `[0, photons)` of every item, in order):
+/// pure, so it may run anywhere; [`Steps::keep`] takes them.
+pub fn score_group(scoring: &Scoring, photons: u32, counts: &[CountMatrix]) -> Result<Vec<Score>> {
+    counts
+        .iter()
+        .map(|c| {
+            scoring
+                .score(c, photons)
+                .with_context(|| format!("scoring a render of {photons} photons per source"))
+        })
+        .collect()
 }
 
 /// The identity of a differential render: the plain render's and the changes it estimates.

@@ -9,6 +9,7 @@
 //! - `setup`: the setup's end (ε and the target), and its scoring rebuilt on restore.
 //! - `outputs`: the files `reconstruct` writes, made and stored.
 //! - `pace`: photons per second and the time left.
+//! - [`scoring`]: a complete search group scored away from the scheduler's lock.
 //! - [`faults`]: a job paused when the store fails, and restored from it.
 //!
 //! A job moves Preparing (target and ε calibration renders) → Searching (one group per search
@@ -24,6 +25,7 @@ mod pace;
 pub mod pinning;
 mod planning;
 pub mod record;
+pub mod scoring;
 mod setup;
 
 pub use checkpoint::{Checkpoint, JobState};
@@ -42,6 +44,7 @@ use scatterfarm_search::identity::Identity;
 use scatterfarm_search::steps::Steps;
 use scatterfarm_search::Score;
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A job in memory.
@@ -50,7 +53,9 @@ pub struct Job {
     pub record: JobRecord,
     pub plan: Plan,
     pub checkpoint: Checkpoint,
-    scoring: Option<Scoring>,
+    scoring: Option<Arc<Scoring>>,
+    /// The group being scored off the lock ([`scoring`]), while the job waits for its scores.
+    scoring_group: Option<u64>,
     /// The search's step driver (score cache and racing prefixes), once the job is pinned to
     /// an engine; its scores are also in the store.
     steps: Option<Steps>,
@@ -118,7 +123,7 @@ impl Job {
         }
         let plan = Plan::resolve(&record.params, &inputs).with_context(|| format!("job {id}"))?;
         let checkpoint = Checkpoint::load(&id, store)?;
-        let scoring = setup::restored_scoring(&id, &plan, &checkpoint, store)?;
+        let scoring = setup::restored_scoring(&id, &plan, &checkpoint, store)?.map(Arc::new);
         let scores = store.scores(&id)?;
         Ok(Job::assemble(id, record, plan, checkpoint, scores, scoring))
     }
@@ -129,7 +134,7 @@ impl Job {
         plan: Plan,
         checkpoint: Checkpoint,
         scores: BTreeMap<Identity, (Score, u64)>,
-        scoring: Option<Scoring>,
+        scoring: Option<Arc<Scoring>>,
     ) -> Job {
         let renders = checkpoint.search.progress().renders_done;
         let steps = checkpoint
@@ -142,6 +147,7 @@ impl Job {
             plan,
             checkpoint,
             scoring,
+            scoring_group: None,
             steps,
             setup: SetupCounts::default(),
             groups: Vec::new(),
@@ -183,6 +189,7 @@ impl Job {
     pub fn fail(&mut self, message: String, store: &dyn Store) -> Result<()> {
         tracing::error!("job {} failed: {message}", self.id);
         self.groups.clear();
+        self.scoring_group = None;
         self.checkpoint.state = JobState::Failed { message };
         self.persist(store)
     }
@@ -191,6 +198,7 @@ impl Job {
     pub fn cancel(&mut self, store: &dyn Store) -> Result<()> {
         if self.is_active() {
             self.groups.clear();
+            self.scoring_group = None;
             self.checkpoint.state = JobState::Cancelled;
             self.persist(store)?;
         }

@@ -1,6 +1,7 @@
 //! Cutting a job's work into render groups, through the search's step driver
 //! ([`scatterfarm_search::steps::Steps`]), and taking the groups back as they complete.
 
+use super::scoring::ScoreWork;
 use super::{Job, JobState};
 use crate::store::Store;
 use crate::work::{Purpose, RenderGroup};
@@ -22,7 +23,7 @@ impl Job {
         new_group_id: &mut dyn FnMut() -> u64,
         store: &dyn Store,
     ) -> Result<()> {
-        if !self.groups.is_empty() || !self.is_active() {
+        if !self.groups.is_empty() || !self.is_active() || self.is_scoring() {
             return Ok(());
         }
         let fingerprint = self
@@ -93,20 +94,20 @@ impl Job {
         }
     }
 
-    /// Takes a complete group's counts: setup counts are kept until the setup is complete;
-    /// search renders are scored and their scores stored. Then plans the next work.
+    /// Takes a complete group's counts. Setup counts are kept until the setup is complete, and
+    /// the next work is planned; a search group comes back as [`ScoreWork`], to be scored off
+    /// the lock and handed to [`Job::take_scored`].
     pub fn group_complete(
         &mut self,
         group: RenderGroup,
         new_group_id: &mut dyn FnMut() -> u64,
         store: &dyn Store,
-    ) -> Result<()> {
+    ) -> Result<Option<ScoreWork>> {
         let sources = group.geometry.sources() as u64;
         self.checkpoint.photons_simulated +=
             sources * u64::from(group.photons - group.start) * group.items.len() as u64;
         self.checkpoint.used.scatter_events += group.scatter_events;
-        let purpose = group.purpose;
-        let photons = group.photons;
+        let (id, purpose, photons) = (group.id, group.purpose, group.photons);
         let items = group.items.clone();
         let sums = group.into_sums();
         match purpose {
@@ -114,26 +115,12 @@ impl Job {
                 if let Some(c) = sums.into_iter().next() {
                     self.setup.set(kind, c);
                 }
-            }
-            Purpose::Search => {
-                let scoring = self
-                    .scoring
-                    .as_ref()
-                    .context("a search render completed before ε was calibrated")?;
-                let steps = self
-                    .steps
-                    .as_mut()
-                    .context("a search render completed for a job that is not pinned")?;
-                for (id, score, step) in
-                    steps.complete(&self.checkpoint.search, scoring, photons, &items, sums)?
-                {
-                    store.put_score(&self.id, &id, score, step)?;
+                if self.groups.is_empty() {
+                    self.plan_work(new_group_id, store)?;
                 }
+                Ok(None)
             }
+            Purpose::Search => self.score_later(id, photons, items, sums).map(Some),
         }
-        if self.groups.is_empty() {
-            self.plan_work(new_group_id, store)?;
-        }
-        Ok(())
     }
 }

@@ -67,7 +67,7 @@ impl Job {
         self.checkpoint.epsilon = scoring.epsilons.get(&finest).copied();
         self.checkpoint.epsilons = scoring.epsilons.clone();
         self.checkpoint.state = JobState::Searching;
-        self.scoring = Some(scoring);
+        self.scoring = Some(std::sync::Arc::new(scoring));
         self.setup = SetupCounts::default();
         self.persist(store)
     }

@@ -1,7 +1,8 @@
 //! The coordinator's scheduler: jobs, registered workers and leases, and the rules between them.
 //!
 //! Everything here is synchronous and driven by the gRPC services (one mutex around a
-//! [`Scheduler`]): workers register and lease pieces of render groups; jobs are served
+//! [`Scheduler`]; a result that completes a search group is scored without it, see
+//! [`results`]): workers register and lease pieces of render groups; jobs are served
 //! round-robin so many reconstructions progress together; a piece not returned by its deadline,
 //! or whose worker stops sending heartbeats, is leased again with the next attempt number, up to
 //! a cap; results are checked before they are summed, and a worker that sends three bad results

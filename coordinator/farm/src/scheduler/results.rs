@@ -1,10 +1,12 @@
 //! Results and give-backs: a returned result is checked against its lease (worker, job,
 //! attempt) and its group, counted against the worker if malformed, and otherwise summed; a
-//! complete group is scored and advances its job.
+//! complete search group is handed out to be scored off the lock ([`ScoreWork`]), and its
+//! scores ([`Scheduler::scored`]) advance its job.
 
 use super::giveback::Returned;
 use super::sizing::photons_per_launch;
 use super::{Lease, Refusal, Scheduler, STRIKES};
+use crate::job::scoring::{ScoreWork, Scored};
 use crate::work::RenderGroup;
 use scatterfarm_model::CountMatrix;
 
@@ -58,8 +60,8 @@ impl Scheduler {
         Ok(lease)
     }
 
-    /// Takes a result: checks it, sums it, and when its group is complete scores it and
-    /// advances the job.
+    /// Takes a result: checks it and sums it. When that completes a search group, the group
+    /// comes back to be scored off the lock: run it and hand it to [`Scheduler::scored`].
     pub fn complete(
         &mut self,
         worker: &str,
@@ -67,7 +69,7 @@ impl Scheduler {
         task: u64,
         attempt: u32,
         rendered: Rendered,
-    ) -> Result<(), Refusal> {
+    ) -> Result<Option<ScoreWork>, Refusal> {
         let Rendered {
             counts,
             scatter_events,
@@ -148,15 +150,58 @@ impl Scheduler {
         job.session_photons += photons;
         self.counters.photons += photons;
         let leased_elsewhere = self.leases.values().any(|l| l.group == lease.group);
+        let mut work = None;
         if job.groups[pos].is_complete() && !leased_elsewhere {
             let group: RenderGroup = job.groups.remove(pos);
             self.counters.renders_completed += group.items.len() as u64;
-            if let Err(e) = job.group_complete(group, &mut new_group, store.as_ref()) {
-                job.on_error(e, store.as_ref());
-                if !job.is_active() || job.is_paused() {
-                    self.leases.retain(|_, l| l.job != job_id);
+            match job.group_complete(group, &mut new_group, store.as_ref()) {
+                Ok(w) => work = w,
+                Err(e) => {
+                    job.on_error(e, store.as_ref());
+                    if !job.is_active() || job.is_paused() {
+                        self.leases.retain(|_, l| l.job != job_id);
+                    }
                 }
             }
+        }
+        Ok(work)
+    }
+
+    /// Takes a group's scores, made off the lock from the [`ScoreWork`] that
+    /// [`Scheduler::complete`] handed out: its job keeps them and plans its next work. Scores
+    /// of a job deleted meanwhile are dropped.
+    pub fn scored(&mut self, scored: Scored) {
+        let store = self.store.clone();
+        let next_group = &mut self.next_group;
+        let mut new_group = || {
+            let g = *next_group;
+            *next_group += 1;
+            g
+        };
+        let Some(job) = self.jobs.get_mut(&scored.job) else {
+            return;
+        };
+        if let Err(e) = job.take_scored(scored, &mut new_group, store.as_ref()) {
+            job.on_error(e, store.as_ref());
+            if !job.is_active() || job.is_paused() {
+                let id = job.id.clone();
+                self.leases.retain(|_, l| l.job != id);
+            }
+        }
+    }
+
+    /// [`Scheduler::complete`] with its scoring done at once, under the lock: for tests and
+    /// tools that drive a scheduler on one thread.
+    pub fn complete_and_score(
+        &mut self,
+        worker: &str,
+        job_id: &str,
+        task: u64,
+        attempt: u32,
+        rendered: Rendered,
+    ) -> Result<(), Refusal> {
+        if let Some(work) = self.complete(worker, job_id, task, attempt, rendered)? {
+            self.scored(work.run());
         }
         Ok(())
     }

@@ -2,7 +2,7 @@
 //! give tasks back.
 
 use super::Farm;
-use crate::scheduler::{Rendered, TaskOut};
+use crate::scheduler::{Refusal, Rendered, TaskOut};
 use scatterfarm_model::PhotonRange;
 use scatterfarm_proto::convert::{
     fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
@@ -126,9 +126,11 @@ impl WorkerService for WorkerApi {
         let r = request.into_inner();
         let counts = results_from_proto(&r.counts).map_err(|e| e.to_string());
         let farm = self.0.clone();
-        // Scoring a completed group takes milliseconds: keep it off the async threads.
+        // Off the async threads: the lock to sum the result, then, without it, the scoring of
+        // a group it completed, then the lock again to keep the scores. Heartbeats and leases
+        // never wait behind scoring.
         tokio::task::spawn_blocking(move || {
-            farm.scheduler().complete(
+            let work = farm.scheduler().complete(
                 &r.worker_id,
                 &r.job_id,
                 r.task_id,
@@ -138,7 +140,12 @@ impl WorkerService for WorkerApi {
                     scatter_events: r.scatter_events,
                     render_seconds: r.render_seconds,
                 },
-            )
+            )?;
+            if let Some(work) = work {
+                let scored = work.run();
+                farm.scheduler().scored(scored);
+            }
+            Ok::<(), Refusal>(())
         })
         .await
         .map_err(|e| Status::internal(format!("the result handler failed: {e}")))??;

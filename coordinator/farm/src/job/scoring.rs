@@ -1,0 +1,120 @@
+//! Scoring a complete search group away from the scheduler's lock. The job hands out a
+//! [`ScoreWork`] (the group's counts and a shared handle on its scoring) and plans nothing
+//! until it comes back; [`ScoreWork::run`] scores it on any thread; [`Job::take_scored`] keeps
+//! the [`Scored`] under the lock, unless the job was cancelled, deleted or restored from the
+//! store meanwhile (a restored job plans the step again, and its renders are seeded per
+//! request, so it ends with the same result).
+
+use super::Job;
+use crate::store::Store;
+use anyhow::{Context, Result};
+use scatterfarm_model::CountMatrix;
+use scatterfarm_search::driver::Scoring;
+use scatterfarm_search::steps::{score_group, GroupItem};
+use scatterfarm_search::Score;
+use std::sync::Arc;
+
+/// A complete search group, to be scored off the lock.
+pub struct ScoreWork {
+    /// The job it belongs to.
+    pub job: String,
+    group: u64,
+    scoring: Arc<Scoring>,
+    photons: u32,
+    items: Vec<GroupItem>,
+    counts: Vec<CountMatrix>,
+}
+
+/// A group's scores, to be kept by its job.
+pub struct Scored {
+    /// The job it belongs to.
+    pub job: String,
+    group: u64,
+    photons: u32,
+    items: Vec<GroupItem>,
+    counts: Vec<CountMatrix>,
+    scores: Result<Vec<Score>>,
+}
+
+impl ScoreWork {
+    /// Scores the group: the one heavy step of taking a result, run without the lock.
+    pub fn run(self) -> Scored {
+        let scores = score_group(&self.scoring, self.photons, &self.counts);
+        Scored {
+            job: self.job,
+            group: self.group,
+            photons: self.photons,
+            items: self.items,
+            counts: self.counts,
+            scores,
+        }
+    }
+}
+
+impl Job {
+    /// Hands group `group`'s complete counts out to be scored; the job plans no work until
+    /// [`Job::take_scored`] has them back.
+    pub(super) fn score_later(
+        &mut self,
+        group: u64,
+        photons: u32,
+        items: Vec<GroupItem>,
+        counts: Vec<CountMatrix>,
+    ) -> Result<ScoreWork> {
+        let scoring = self
+            .scoring
+            .clone()
+            .context("a search render completed before ε was calibrated")?;
+        self.scoring_group = Some(group);
+        Ok(ScoreWork {
+            job: self.id.clone(),
+            group,
+            scoring,
+            photons,
+            items,
+            counts,
+        })
+    }
+
+    /// Whether a group of this job is being scored off the lock.
+    pub fn is_scoring(&self) -> bool {
+        self.scoring_group.is_some()
+    }
+
+    /// Keeps a group's scores (stored, then the next work planned). Scores of a group this
+    /// job no longer waits for (it was cancelled, or restored from the store) are dropped.
+    pub fn take_scored(
+        &mut self,
+        scored: Scored,
+        new_group_id: &mut dyn FnMut() -> u64,
+        store: &dyn Store,
+    ) -> Result<()> {
+        if self.scoring_group != Some(scored.group) || !self.is_active() {
+            tracing::debug!(
+                "job {}: scores of group {} are no longer needed",
+                self.id,
+                scored.group
+            );
+            return Ok(());
+        }
+        self.scoring_group = None;
+        let scores = scored.scores?;
+        let steps = self
+            .steps
+            .as_mut()
+            .context("a search render completed for a job that is not pinned")?;
+        for (id, score, step) in steps.keep(
+            &self.checkpoint.search,
+            scored.photons,
+            &scored.items,
+            scored.counts,
+            scores,
+        )? {
+            store.put_score(&self.id, &id, score, step)?;
+        }
+        if self.groups.is_empty() {
+            self.plan_work(new_group_id, store)?;
+        }
+        Ok(())
+    }
+}

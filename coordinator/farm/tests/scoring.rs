@@ -1,0 +1,143 @@
+//! Scoring off the scheduler's lock, in process: a result that completes a search group hands
+//! the group out as [`ScoreWork`]; while it is out, its job leases nothing and the scheduler
+//! answers heartbeats; its scores, kept afterwards, give exactly the map of scores made at
+//! once. Scores that come back for a cancelled job are dropped.
+
+use scatterfarm_coordinator::job::scoring::ScoreWork;
+use scatterfarm_coordinator::job::JobState;
+use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
+use scatterfarm_coordinator::store::MemoryStore;
+use scatterfarm_engines::cpu::CpuEngine;
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::spec::JobSpec;
+use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+
+const SCENE: &str = r##"
+[geometry]
+grid = 4
+positions = 16
+directions = 3
+[map]
+legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
+rows = ["oo..", "oo..", "...b", "..bb"]
+"##;
+
+const JOB: &str = "scene = \"three.toml\"\npermutations = 2\niterations = 4\nphotons_per_iteration = 256\nseed = 7\nsearch = \"fast\"\n";
+
+/// How a run treats the groups handed out for scoring.
+#[derive(Clone, Copy, PartialEq)]
+enum Scoring {
+    /// Scored and kept at once.
+    AtOnce,
+    /// Held while the scheduler is asked for work and heartbeats, then kept.
+    Held,
+    /// The job is cancelled while the first group is out.
+    CancelledMeanwhile,
+}
+
+/// Runs the job with one in-process CPU worker; the scheduler and the job's id.
+fn run(scoring: Scoring) -> (Scheduler, String) {
+    let settings = Settings {
+        task_seconds: 0.02,
+        ..Settings::default()
+    };
+    let store = Arc::new(MemoryStore::new());
+    let mut s = Scheduler::open(store, settings).unwrap();
+    let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
+    let inputs = Inputs {
+        files: BTreeMap::from([("three.toml".to_string(), SCENE.as_bytes().to_vec())]),
+    };
+    let id = s.submit(spec, inputs).unwrap();
+    let engine = CpuEngine::new();
+    let worker = s.register("w".into(), engine.fingerprint(), 2e6);
+    let mut handed_out = 0;
+    for round in 0.. {
+        assert!(round < 100_000, "the job did not end");
+        let task = match s.lease(&worker).unwrap() {
+            Ok(task) => task,
+            Err(_) => break,
+        };
+        let batch = RenderBatch {
+            geometry: task.geometry,
+            table: &task.table,
+            items: &task.items,
+            photons: PhotonRange {
+                first: task.piece.first,
+                count: task.piece.count,
+            },
+        };
+        let counts = engine
+            .render(&batch)
+            .unwrap()
+            .into_iter()
+            .map(|o| o.counts)
+            .collect();
+        let rendered = Rendered {
+            counts: Ok(counts),
+            scatter_events: 0,
+            render_seconds: 0.01,
+        };
+        let work: Option<ScoreWork> = s
+            .complete(
+                &worker,
+                &task.job,
+                task.piece.task_id,
+                task.piece.attempt,
+                rendered,
+            )
+            .unwrap();
+        let Some(work) = work else { continue };
+        handed_out += 1;
+        assert_eq!(work.job, id);
+        match scoring {
+            Scoring::AtOnce => {}
+            Scoring::Held => {
+                assert!(s.jobs[&id].is_scoring());
+                assert!(
+                    s.heartbeat(&worker),
+                    "the worker is known while scores are out"
+                );
+                let nothing = s.lease(&worker).unwrap();
+                assert!(
+                    nothing.is_err(),
+                    "a job waiting for its scores leased more work"
+                );
+            }
+            Scoring::CancelledMeanwhile => {
+                s.cancel(&id).unwrap();
+                s.scored(work.run());
+                assert_eq!(s.jobs[&id].checkpoint.state, JobState::Cancelled);
+                assert!(!s.jobs[&id].is_scoring());
+                assert!(s.lease(&worker).unwrap().is_err(), "a cancelled job leased");
+                return (s, id);
+            }
+        }
+        s.scored(work.run());
+    }
+    assert!(handed_out > 3, "{handed_out} groups scored");
+    (s, id)
+}
+
+fn materials(s: &Scheduler, id: &str) -> Vec<u8> {
+    let job = &s.jobs[id];
+    assert_eq!(job.checkpoint.state, JobState::Finished);
+    job.stored_outputs(s.store()).unwrap()["materials.npy"].clone()
+}
+
+#[test]
+fn scores_made_off_the_lock_give_the_map_of_scores_made_at_once() {
+    let (at_once, a) = run(Scoring::AtOnce);
+    let (held, b) = run(Scoring::Held);
+    assert!(
+        materials(&at_once, &a) == materials(&held, &b),
+        "another map"
+    );
+}
+
+#[test]
+fn scores_that_come_back_for_a_cancelled_job_are_dropped() {
+    run(Scoring::CancelledMeanwhile);
+}
