@@ -6,7 +6,8 @@
 #   SCENES=fig7b,fig7c SEEDS=1 SEARCHES=likelihood-differential LIMIT=900 bash tests/bench/quality-each.sh
 #
 # The searches and their settings are in searches.sh. BIN=path runs that binary instead of
-# building one, so a long queue keeps measuring one build while the tree changes.
+# building one, so a long queue keeps measuring one build while the tree changes. TAG=name
+# adds -name to the file names (two builds side by side); KEEP=folder keeps each run's pictures.
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 SCENES=${SCENES:-fig7a,fig7b,fig7c,fig7d,fig7e,fig7f,fig7g,fig7h,fig7i,fig7j,fig7k,fig7l,phantom16}
@@ -22,9 +23,11 @@ source tests/bench/searches.sh
 for search in $SEARCHES; do
   search_flags "$search"
   for scene in ${SCENES//,/ }; do
-    name="tests/bench/quality/$search-$scene-seeds${SEEDS//,/-}"
+    name="tests/bench/quality/$search-$scene-seeds${SEEDS//,/-}${TAG:+-$TAG}"
+    keep=()
+    [ -n "${KEEP:-}" ] && keep=(--keep "$KEEP/$search-$scene${TAG:+-$TAG}")
     timeout "$LIMIT" "$BIN" bench reconstruct --engine cpu --scenes "$scene" \
-      --seeds "$SEEDS" "${flags[@]}" --out "$name.json" >/dev/null 2>"$name.log"
+      --seeds "$SEEDS" "${flags[@]}" "${keep[@]}" --out "$name.json" >/dev/null 2>"$name.log"
     rc=$?
     [ $rc -eq 124 ] && echo "stopped after $LIMIT s" >>"$name.log"
     echo "$search $scene rc=$rc"

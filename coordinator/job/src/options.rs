@@ -250,6 +250,9 @@ impl JobSpec {
                     escalations: self
                         .refine_escalations
                         .unwrap_or(likelihood::REFINE_ESCALATIONS),
+                    recolour_regions: self.refine_recolour.unwrap_or(true),
+                    // Set from the geometry when the plan resolves.
+                    pixel_mm: 1.0,
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

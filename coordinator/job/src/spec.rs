@@ -123,6 +123,9 @@ pub struct JobSpec {
     /// How many times refinement may double its photons where it would otherwise end
     /// (likelihood: 2).
     pub refine_escalations: Option<u32>,
+    /// Whether refinement sweeps also set each connected region (of two pixels or more)
+    /// wholly to each other candidate material (likelihood: true).
+    pub refine_recolour: Option<bool>,
     /// A label for job listings (job files only, no flag).
     pub name: Option<String>,
     /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
@@ -171,6 +174,7 @@ impl Default for JobSpec {
             refine_moves: None,
             refine_screen: None,
             refine_escalations: None,
+            refine_recolour: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,

@@ -949,7 +949,25 @@ impl Search {
                     })
                     .collect();
                 let opaque = physics.iter().map(|m| m.is_opaque()).collect();
-                self.refinement = Some(Refinement::new(
+                let spread = physics
+                    .iter()
+                    .map(|from| {
+                        physics
+                            .iter()
+                            .map(|to| {
+                                // Finite, for the checkpoint's JSON: an unsupported
+                                // change is refused by `reweightable` anyway.
+                                scatterfarm_model::differential::weight_spread(
+                                    from,
+                                    to,
+                                    config.pixel_mm,
+                                )
+                                .min(f64::MAX)
+                            })
+                            .collect()
+                    })
+                    .collect();
+                self.refinement = Some(Refinement::with_spread(
                     config,
                     self.config.grid,
                     materials,
@@ -957,6 +975,7 @@ impl Search {
                     last.assignment,
                     reweightable,
                     opaque,
+                    spread,
                 ));
                 self.emit_refinement();
                 Ok(())

@@ -5,8 +5,10 @@
 //! A **sweep** renders the current map `M` and every change of it on one fresh seed (common
 //! random numbers): each pixel turned to each other candidate material, and each object (a
 //! connected region of a material other than the map's most common one) moved by one pixel in
-//! each of the four directions. A change is a candidate when its likelihood beats `M`'s by more
-//! than `z` paired standard errors ([`crate::likelihood::paired`]). The candidates are taken best
+//! each of the four directions; with `recolour_regions`, each connected region of two pixels or
+//! more set wholly to each other candidate material. A change is a candidate when its
+//! likelihood beats `M`'s by more than `z` paired standard errors
+//! ([`crate::likelihood::paired`]). The candidates are taken best
 //! first, skipping any that touches a pixel next to one already taken (single pixels set to
 //! the same material excepted), and applied together.
 //!
@@ -52,7 +54,24 @@ pub struct RefineConfig {
     /// of the changes left is small.
     #[serde(default)]
     pub escalations: u32,
+    /// Whether sweeps also try each connected region of two pixels or more (objects and the
+    /// background alike) set wholly to each other candidate material: a region found in the
+    /// right place with the wrong material is then one change, not one per pixel.
+    #[serde(default)]
+    pub recolour_regions: bool,
+    /// The pixel's side in mm, for how noisy reweighting is ([`Refinement::with_spread`]).
+    #[serde(default = "default_pixel_mm")]
+    pub pixel_mm: f64,
 }
+
+fn default_pixel_mm() -> f64 {
+    1.0
+}
+
+/// A change of several pixels is rendered directly, not reweighted, when its photon weights
+/// are noisier than this ([`Refinement::spread_of`]): its estimate would rest on a few
+/// photons, and a change whose estimate is too noisy to beat `z` is never taken.
+pub const MAX_SPREAD: f64 = 10.0;
 
 fn default_changes_per_render() -> u32 {
     1024
@@ -105,6 +124,12 @@ impl RefineConfig {
         }
         if self.changes_per_render == 0 {
             return Some("a differential render needs room for at least one change".into());
+        }
+        if !(self.pixel_mm.is_finite() && self.pixel_mm > 0.0) {
+            return Some(format!(
+                "the pixel size must be > 0 mm, got {}",
+                self.pixel_mm
+            ));
         }
         None
     }
@@ -225,6 +250,10 @@ pub struct Refinement {
     /// pixels are filled for differential renders ([`Refinement::filled_base`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     opaque: Vec<bool>,
+    /// How noisy a pixel's photon weights are going from material `i` to `j`
+    /// (`model::differential::weight_spread`; empty: not known, taken as exact).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    spread: Vec<Vec<f64>>,
     /// The score of the current map on the last seed it was rendered on.
     current_score: Option<f64>,
     sweep: u32,
@@ -249,6 +278,32 @@ impl Refinement {
         reweightable: Vec<Vec<bool>>,
         opaque: Vec<bool>,
     ) -> Refinement {
+        Self::with_spread(
+            config,
+            grid,
+            materials,
+            job_seed,
+            start,
+            reweightable,
+            opaque,
+            Vec::new(),
+        )
+    }
+
+    /// [`Refinement::new`], knowing how noisy each material change's photon weights are
+    /// (`spread[i][j]`, `model::differential::weight_spread`): a change of several pixels
+    /// noisier than [`MAX_SPREAD`] is rendered directly.
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_spread(
+        config: RefineConfig,
+        grid: u32,
+        materials: Vec<u16>,
+        job_seed: u64,
+        start: Vec<u16>,
+        reweightable: Vec<Vec<bool>>,
+        opaque: Vec<bool>,
+        spread: Vec<Vec<f64>>,
+    ) -> Refinement {
         let mut r = Refinement {
             config,
             grid,
@@ -257,6 +312,7 @@ impl Refinement {
             current: start,
             reweightable,
             opaque,
+            spread,
             current_score: None,
             sweep: 0,
             stalls: 0,
@@ -500,7 +556,8 @@ impl Refinement {
         self.can_reweight_on(&self.current, change)
     }
 
-    /// Whether every pixel of `change` can be reweighted from `map`.
+    /// Whether every pixel of `change` can be reweighted from `map`, and its weights are not
+    /// too noisy ([`Refinement::spread_of`] at most [`MAX_SPREAD`]).
     fn can_reweight_on(&self, map: &[u16], change: &Change) -> bool {
         change.pixels.iter().all(|&(p, d)| {
             let from = map[p as usize];
@@ -509,7 +566,32 @@ impl Refinement {
                 .and_then(|row| row.get(usize::from(d)))
                 .copied()
                 .unwrap_or(false)
-        })
+        }) && self.spread_of(map, change) <= MAX_SPREAD
+    }
+
+    /// How noisy the photon weights of `change` of `map` are: 1 for a change of at most one
+    /// inexact pixel (single pixels are always reweighted: rendering each directly is what
+    /// differential screening saves), else the noisiest pixel's spread to the power √k for
+    /// its `k` inexact pixels (a photon crossing a region of `k` pixels crosses about √k).
+    pub fn spread_of(&self, map: &[u16], change: &Change) -> f64 {
+        let spreads: Vec<f64> = change
+            .pixels
+            .iter()
+            .map(|&(p, d)| {
+                let from = map[p as usize];
+                self.spread
+                    .get(usize::from(from))
+                    .and_then(|row| row.get(usize::from(d)))
+                    .copied()
+                    .unwrap_or(1.0)
+            })
+            .filter(|&s| s > 1.0)
+            .collect();
+        if spreads.len() <= 1 {
+            return 1.0;
+        }
+        let worst = spreads.iter().copied().fold(1.0, f64::max);
+        worst.powf((spreads.len() as f64).sqrt())
     }
 
     /// `M` with `change` applied.
@@ -542,7 +624,71 @@ impl Refinement {
                 }
             }
         }
+        if self.config.recolour_regions {
+            let mut seen: BTreeSet<Vec<(u32, u16)>> =
+                out.iter().map(|c| c.pixels.clone()).collect();
+            for c in self.recolours() {
+                if seen.insert(c.pixels.clone()) {
+                    out.push(c);
+                }
+            }
+        }
         out
+    }
+
+    /// Each connected region of two pixels or more, background included, set wholly to each
+    /// other candidate material.
+    fn recolours(&self) -> Vec<Change> {
+        let mut out = Vec::new();
+        for (m, pixels) in self.regions() {
+            if pixels.len() < 2 {
+                continue;
+            }
+            for &d in &self.materials {
+                if d != m {
+                    out.push(Change {
+                        pixels: pixels.iter().map(|&p| (p as u32, d)).collect(),
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    /// The map's 4-connected regions of one material, each with its pixels in order, the
+    /// regions in the order of their first pixel.
+    fn regions(&self) -> Vec<(u16, Vec<usize>)> {
+        let n = self.grid as i64;
+        let mut label = vec![usize::MAX; self.current.len()];
+        let mut regions: Vec<(u16, Vec<usize>)> = Vec::new();
+        for start in 0..self.current.len() {
+            if label[start] != usize::MAX {
+                continue;
+            }
+            let m = self.current[start];
+            let id = regions.len();
+            let mut stack = vec![start];
+            let mut pixels = Vec::new();
+            label[start] = id;
+            while let Some(p) = stack.pop() {
+                pixels.push(p);
+                let (y, x) = (p as i64 / n, p as i64 % n);
+                for (dy, dx) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
+                    let (yy, xx) = (y + dy, x + dx);
+                    if yy < 0 || yy >= n || xx < 0 || xx >= n {
+                        continue;
+                    }
+                    let q = (yy * n + xx) as usize;
+                    if label[q] == usize::MAX && self.current[q] == m {
+                        label[q] = id;
+                        stack.push(q);
+                    }
+                }
+            }
+            pixels.sort_unstable();
+            regions.push((m, pixels));
+        }
+        regions
     }
 
     /// The map's most common material (ties: the lowest index).
@@ -564,35 +710,11 @@ impl Refinement {
     fn object_moves(&self) -> Vec<Change> {
         let n = self.grid as i64;
         let background = self.background();
-        let mut label = vec![usize::MAX; self.current.len()];
-        let mut objects: Vec<(u16, Vec<usize>)> = Vec::new();
-        for start in 0..self.current.len() {
-            let m = self.current[start];
-            if m == background || label[start] != usize::MAX {
-                continue;
-            }
-            let id = objects.len();
-            let mut stack = vec![start];
-            let mut pixels = Vec::new();
-            label[start] = id;
-            while let Some(p) = stack.pop() {
-                pixels.push(p);
-                let (y, x) = (p as i64 / n, p as i64 % n);
-                for (dy, dx) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
-                    let (yy, xx) = (y + dy, x + dx);
-                    if yy < 0 || yy >= n || xx < 0 || xx >= n {
-                        continue;
-                    }
-                    let q = (yy * n + xx) as usize;
-                    if label[q] == usize::MAX && self.current[q] == m {
-                        label[q] = id;
-                        stack.push(q);
-                    }
-                }
-            }
-            pixels.sort_unstable();
-            objects.push((m, pixels));
-        }
+        let objects: Vec<(u16, Vec<usize>)> = self
+            .regions()
+            .into_iter()
+            .filter(|(m, _)| *m != background)
+            .collect();
         let mut moves = Vec::new();
         for (m, pixels) in objects {
             if pixels.len() * 2 > self.current.len() {
@@ -945,6 +1067,8 @@ mod tests {
             screen: Screen::Direct,
             changes_per_render: 1024,
             escalations: 0,
+            recolour_regions: false,
+            pixel_mm: 1.0,
         }
     }
 
@@ -1029,6 +1153,77 @@ mod tests {
         let r = run(&truth, truth.clone(), vec![0, 1]);
         assert_eq!(r.current().0, &truth[..]);
         assert_eq!(r.history().len(), 1);
+    }
+
+    #[test]
+    fn recolours_set_a_whole_region_to_each_other_material() {
+        let mut start = vec![0u16; 16];
+        for p in [5, 6, 9, 10] {
+            start[p] = 1;
+        }
+        start[15] = 2;
+        let cfg = RefineConfig {
+            recolour_regions: true,
+            ..config()
+        };
+        let r = Refinement::new(cfg, 4, vec![0, 1, 2], 1, start.clone(), vec![], vec![]);
+        let recolours = r.recolours();
+        // The background (11 pixels) to 1 and 2, the block to 0 and 2; the single pixel 15 is
+        // left to the pixel changes.
+        assert_eq!(recolours.len(), 4, "{recolours:?}");
+        let block_to_2: Vec<(u32, u16)> = [5, 6, 9, 10].map(|p| (p, 2)).to_vec();
+        assert!(recolours.iter().any(|c| c.pixels == block_to_2));
+        assert!(recolours
+            .iter()
+            .any(|c| c.pixels.len() == 11 && c.pixels.iter().all(|&(_, d)| d == 1)));
+        // A block found with the wrong material is one change away from the truth.
+        let mut truth = start.clone();
+        for p in [5, 6, 9, 10] {
+            truth[p] = 2;
+        }
+        let cfg = RefineConfig {
+            recolour_regions: true,
+            move_objects: false,
+            ..config()
+        };
+        let found = run_with(cfg, &truth, start, vec![0, 1, 2], Vec::new(), Vec::new());
+        assert_eq!(found.current().0, &truth[..]);
+    }
+
+    #[test]
+    fn noisy_changes_of_several_pixels_are_rendered_directly() {
+        let start = vec![0u16; 16];
+        // 0 → 1 is nearly exact, 0 → 2 very noisy (a forward to a backward phase function).
+        let spread = vec![vec![1.0, 1.1, 300.0], vec![1.1, 1.0, 300.0], vec![300.0; 3]];
+        let reweightable = vec![vec![true; 3]; 3];
+        let cfg = RefineConfig {
+            screen: Screen::Differential,
+            ..config()
+        };
+        let r = Refinement::with_spread(
+            cfg,
+            4,
+            vec![0, 1, 2],
+            1,
+            start.clone(),
+            reweightable,
+            vec![],
+            spread,
+        );
+        let one = Change {
+            pixels: vec![(3, 2)],
+        };
+        let two_mild = Change {
+            pixels: vec![(3, 1), (4, 1)],
+        };
+        let two_back = Change {
+            pixels: vec![(3, 2), (4, 2)],
+        };
+        assert_eq!(r.spread_of(&start, &one), 1.0);
+        assert!(r.can_reweight(&one), "single pixels are always reweighted");
+        assert!(r.can_reweight(&two_mild));
+        assert!(r.spread_of(&start, &two_back) > MAX_SPREAD);
+        assert!(!r.can_reweight(&two_back));
     }
 
     #[test]

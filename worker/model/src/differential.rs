@@ -39,6 +39,52 @@ pub fn reweightable(from: &Material, to: &Material) -> bool {
     from.g == to.g || (from.g.abs() < 1.0 && to.g.abs() < 1.0)
 }
 
+/// How noisy a photon weight is for a pixel going from `from` to `to`, for a photon that
+/// crosses the pixel (of side `pixel_mm`): the weight's second moment over its mean squared,
+/// so `1` for an exact weight (no change, or an opaque `to`) and `∞` where the change is not
+/// [`reweightable`]. Collisions in a pixel are taken as a Poisson count with mean
+/// `σs_from · pixel_mm`, each multiplying the weight by `r · p_to(θ)/p_from(θ)` with
+/// `r = σs_to/σs_from`, so the ratio is `exp(σs_from · pixel_mm · (r²·Q − 2r + 1))` with
+/// `Q = ∫ p_to²/p_from dθ` (`docs/model.md`, "Differential renders"). An effective sample
+/// size is the photons that cross the pixel divided by this.
+pub fn weight_spread(from: &Material, to: &Material, pixel_mm: f64) -> f64 {
+    if from == to || (to.is_opaque() && !from.is_opaque()) {
+        return 1.0;
+    }
+    if !reweightable(from, to) {
+        return f64::INFINITY;
+    }
+    if from.sigma_s <= 0.0 {
+        // Non-scattering into non-scattering: only the crossing's attenuation changes.
+        return 1.0;
+    }
+    let r = to.sigma_s / from.sigma_s;
+    let q = if to.sigma_s > 0.0 && to.g != from.g {
+        phase_second_moment(from.g, to.g)
+    } else {
+        1.0
+    };
+    (from.sigma_s * pixel_mm * (r * r * q - 2.0 * r + 1.0)).exp()
+}
+
+/// `∫ p_to(θ)² / p_from(θ) dθ` over the circle, for flatland Henyey-Greenstein densities
+/// `p_g(θ) = (1 − g²) / (2π(1 + g² − 2g·cos θ))` with `|g| < 1` (midpoint rule, 1 024 points:
+/// the integrand is smooth and periodic, so the rule converges geometrically).
+fn phase_second_moment(from_g: f64, to_g: f64) -> f64 {
+    let p = |g: f64, t: f64| {
+        (1.0 - g * g) / (std::f64::consts::TAU * (1.0 + g * g - 2.0 * g * t.cos()))
+    };
+    const POINTS: usize = 1024;
+    let h = std::f64::consts::TAU / POINTS as f64;
+    (0..POINTS)
+        .map(|i| {
+            let t = -std::f64::consts::PI + (i as f64 + 0.5) * h;
+            p(to_g, t).powi(2) / p(from_g, t)
+        })
+        .sum::<f64>()
+        * h
+}
+
 /// Whether every pixel of `change` of `assignment` over `table` is [`reweightable`].
 pub fn change_is_reweightable(table: &[Material], assignment: &[u16], change: &Change) -> bool {
     change.pixels.iter().all(|&(p, d)| {
@@ -120,5 +166,25 @@ mod tests {
         assert!(!change_is_reweightable(&table, &[0, 1], &change));
         assert!(change_is_reweightable(&table, &[0, 0], &change));
         assert!(!change_is_reweightable(&table, &[0], &change));
+    }
+
+    #[test]
+    fn weight_spread_grows_with_the_change() {
+        let m = |n| builtin_material(n).unwrap();
+        let same = weight_spread(&m("moderate"), &m("moderate"), 1.0);
+        assert_eq!(same, 1.0);
+        assert_eq!(weight_spread(&m("moderate"), &Material::OPAQUE, 1.0), 1.0);
+        assert!(weight_spread(&Material::OPAQUE, &m("moderate"), 1.0).is_infinite());
+        // Similar materials give nearly exact weights; a forward to a backward phase function
+        // gives weights whose spread is hundreds per crossing.
+        let mild = weight_spread(&m("moderate"), &m("mild"), 1.0);
+        let back = weight_spread(&m("moderate"), &m("back"), 1.0);
+        assert!(mild > 1.0 && mild < 1.2, "{mild}");
+        assert!(back > 100.0, "{back}");
+        // A larger pixel holds more collisions.
+        assert!(weight_spread(&m("moderate"), &m("back"), 2.0) > back);
+        // The phase function's second moment of a density against itself is 1, and the
+        // midpoint rule integrates a density to 1.
+        assert!((phase_second_moment(0.3, 0.3) - 1.0).abs() < 1e-9);
     }
 }

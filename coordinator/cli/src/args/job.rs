@@ -148,6 +148,10 @@ pub struct JobArgs {
     /// otherwise end (likelihood: 2).
     #[arg(long, value_name = "N")]
     pub refine_escalations: Option<u32>,
+    /// Whether refinement sweeps also set each connected region of two pixels or more
+    /// (objects and background) wholly to each other candidate material (likelihood: true).
+    #[arg(long, value_name = "BOOL")]
+    pub refine_recolour: Option<bool>,
 }
 
 impl JobArgs {
@@ -190,6 +194,7 @@ impl JobArgs {
             refine_moves: self.refine_moves,
             refine_screen: self.refine_screen,
             refine_escalations: self.refine_escalations,
+            refine_recolour: self.refine_recolour,
             ..JobSpec::default()
         }
     }

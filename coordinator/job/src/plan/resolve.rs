@@ -119,6 +119,7 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
                 r.changes_per_render = r
                     .changes_per_render
                     .min(fit.clamp(1, u32::MAX as usize) as u32);
+                r.pixel_mm = size_mm / f64::from(geometries.grid.max(1));
                 r
             }),
         },

@@ -664,6 +664,8 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         screen,
         changes_per_render: 7,
         escalations: 0,
+        recolour_regions: true,
+        pixel_mm: 1.0,
     };
     let config = SearchConfig {
         grid: 4,
