@@ -3,29 +3,15 @@
 //! answers heartbeats; its scores, kept afterwards, give exactly the map of scores made at
 //! once. Scores that come back for a cancelled job are dropped.
 
+mod common;
+
 use scatterfarm_coordinator::job::scoring::ScoreWork;
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
 use scatterfarm_coordinator::store::MemoryStore;
 use scatterfarm_engines::cpu::CpuEngine;
-use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::spec::JobSpec;
-use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
-use std::collections::BTreeMap;
-use std::path::Path;
+use scatterfarm_model::Engine;
 use std::sync::Arc;
-
-const SCENE: &str = r##"
-[geometry]
-grid = 4
-positions = 16
-directions = 3
-[map]
-legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
-rows = ["oo..", "oo..", "...b", "..bb"]
-"##;
-
-const JOB: &str = "scene = \"three.toml\"\npermutations = 2\niterations = 4\nphotons_per_iteration = 256\nseed = 7\nsearch = \"fast\"\n";
 
 /// How a run treats the groups handed out for scoring.
 #[derive(Clone, Copy, PartialEq)]
@@ -46,10 +32,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
     };
     let store = Arc::new(MemoryStore::new());
     let mut s = Scheduler::open(store, settings).unwrap();
-    let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
-    let inputs = Inputs {
-        files: BTreeMap::from([("three.toml".to_string(), SCENE.as_bytes().to_vec())]),
-    };
+    let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
     let worker = s.register("w".into(), engine.fingerprint(), 2e6);
@@ -60,26 +43,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
             Ok(task) => task,
             Err(_) => break,
         };
-        let batch = RenderBatch {
-            geometry: task.geometry,
-            table: &task.table,
-            items: &task.items,
-            photons: PhotonRange {
-                first: task.piece.first,
-                count: task.piece.count,
-            },
-        };
-        let counts = engine
-            .render(&batch)
-            .unwrap()
-            .into_iter()
-            .map(|o| o.counts)
-            .collect();
-        let rendered = Rendered {
-            counts: Ok(counts),
-            scatter_events: 0,
-            render_seconds: 0.01,
-        };
+        let rendered = common::render(&engine, &task);
         let work: Option<ScoreWork> = s
             .complete(
                 &worker,

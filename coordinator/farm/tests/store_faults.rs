@@ -2,30 +2,16 @@
 //! pauses, and once the store is healed it is restored and ends with exactly the map of a run
 //! without faults. Stored jobs that cannot be read are listed as damaged and can be deleted.
 
+mod common;
+
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
 use scatterfarm_coordinator::status::{all_statuses, state_name, status_of};
 use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
-use scatterfarm_job::inputs::Inputs;
-use scatterfarm_job::spec::JobSpec;
-use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
-use std::collections::BTreeMap;
-use std::path::Path;
+use scatterfarm_model::Engine;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-const SCENE: &str = r##"
-[geometry]
-grid = 4
-positions = 16
-directions = 3
-[map]
-legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
-rows = ["oo..", "oo..", "...b", "..bb"]
-"##;
-
-const JOB: &str = "scene = \"three.toml\"\npermutations = 2\niterations = 4\nphotons_per_iteration = 256\nseed = 7\nsearch = \"fast\"\n";
 
 /// Runs the job to its end with one in-process CPU worker; its `materials.npy` and the writes
 /// made after its submission. `fault` is the write after the submission to fail from (1 for
@@ -36,10 +22,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
         ..Settings::default()
     };
     let mut s = Scheduler::open(store.clone(), settings).unwrap();
-    let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
-    let inputs = Inputs {
-        files: BTreeMap::from([("three.toml".to_string(), SCENE.as_bytes().to_vec())]),
-    };
+    let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let submitted = store.writes();
     let engine = CpuEngine::new();
@@ -55,26 +38,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
         }
         match s.lease(&worker).unwrap() {
             Ok(task) => {
-                let batch = RenderBatch {
-                    geometry: task.geometry,
-                    table: &task.table,
-                    items: &task.items,
-                    photons: PhotonRange {
-                        first: task.piece.first,
-                        count: task.piece.count,
-                    },
-                };
-                let counts = engine
-                    .render(&batch)
-                    .unwrap()
-                    .into_iter()
-                    .map(|o| o.counts)
-                    .collect();
-                let rendered = Rendered {
-                    counts: Ok(counts),
-                    scatter_events: 0,
-                    render_seconds: 0.01,
-                };
+                let rendered = common::render(&engine, &task);
                 // A result may be refused as no longer needed once its job paused.
                 let _ = s.complete_and_score(
                     &worker,

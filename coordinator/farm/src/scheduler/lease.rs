@@ -96,11 +96,7 @@ impl Scheduler {
                     continue;
                 }
             }
-            let mut new_group = || {
-                let g = *next_group;
-                *next_group += 1;
-                g
-            };
+            let mut new_group = super::ids(next_group);
             if let Err(e) = job.plan_work(&mut new_group, store.as_ref()) {
                 job.on_error(e, store.as_ref());
                 continue;

@@ -183,3 +183,12 @@ impl Scheduler {
         self.store.clone()
     }
 }
+
+/// Ids drawn from `next` (group ids), each one more than the last.
+fn ids(next: &mut u64) -> impl FnMut() -> u64 + '_ {
+    move || {
+        let id = *next;
+        *next += 1;
+        id
+    }
+}

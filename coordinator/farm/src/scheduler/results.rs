@@ -129,11 +129,7 @@ impl Scheduler {
             );
         }
         let next_group = &mut self.next_group;
-        let mut new_group = || {
-            let g = *next_group;
-            *next_group += 1;
-            g
-        };
+        let mut new_group = super::ids(next_group);
         let job = self
             .jobs
             .get_mut(job_id)
@@ -173,11 +169,7 @@ impl Scheduler {
     pub fn scored(&mut self, scored: Scored) {
         let store = self.store.clone();
         let next_group = &mut self.next_group;
-        let mut new_group = || {
-            let g = *next_group;
-            *next_group += 1;
-            g
-        };
+        let mut new_group = super::ids(next_group);
         let Some(job) = self.jobs.get_mut(&scored.job) else {
             return;
         };

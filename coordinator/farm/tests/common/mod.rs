@@ -1,0 +1,57 @@
+//! What the in-process scheduler tests share: a small three-material job, and one CPU
+//! worker's render of a leased task.
+
+use scatterfarm_coordinator::scheduler::{Rendered, TaskOut};
+use scatterfarm_engines::cpu::CpuEngine;
+use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::spec::JobSpec;
+use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// A 4 × 4 scene of three materials, opaque among them.
+pub const SCENE: &str = r##"
+[geometry]
+grid = 4
+positions = 16
+directions = 3
+[map]
+legend = { "." = "moderate", "o" = "opaque", "b" = "back" }
+rows = ["oo..", "oo..", "...b", "..bb"]
+"##;
+
+/// The job over [`SCENE`]: the fast search, small budgets.
+pub const JOB: &str = "scene = \"three.toml\"\npermutations = 2\niterations = 4\nphotons_per_iteration = 256\nseed = 7\nsearch = \"fast\"\n";
+
+/// [`JOB`] and its scene file, as a submission.
+pub fn job() -> (JobSpec, Inputs) {
+    let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
+    let inputs = Inputs {
+        files: BTreeMap::from([("three.toml".to_string(), SCENE.as_bytes().to_vec())]),
+    };
+    (spec, inputs)
+}
+
+/// `task` rendered by `engine`, as a worker returns it.
+pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
+    let batch = RenderBatch {
+        geometry: task.geometry,
+        table: &task.table,
+        items: &task.items,
+        photons: PhotonRange {
+            first: task.piece.first,
+            count: task.piece.count,
+        },
+    };
+    let counts = engine
+        .render(&batch)
+        .unwrap()
+        .into_iter()
+        .map(|o| o.counts)
+        .collect();
+    Rendered {
+        counts: Ok(counts),
+        scatter_events: 0,
+        render_seconds: 0.01,
+    }
+}
