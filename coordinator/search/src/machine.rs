@@ -112,6 +112,8 @@ pub enum SearchError {
     ScoreNaN(f64),
     #[error("the search has finished")]
     Finished,
+    #[error("the stored search state is inconsistent: {0}")]
+    Inconsistent(String),
 }
 
 /// One render the search needs: the assignment, the seed and the photons to render it with.
@@ -478,6 +480,49 @@ impl Search {
             0
         };
         steps + prefetch + rescore
+    }
+
+    /// Checks a search state read back from a store against the invariants every state this
+    /// module makes keeps: levels within the grid's, maps of the grid's pixels over the table.
+    /// A state that fails is damaged, and would otherwise make progress loop over a level
+    /// count of billions or index past a map.
+    pub fn check_consistent(&self) -> Result<(), SearchError> {
+        let bad = |what: String| Err(SearchError::Inconsistent(what));
+        let grid = self.config.grid;
+        if grid == 0 || !grid.is_power_of_two() || grid > 4096 {
+            return bad(format!("grid {grid}"));
+        }
+        let (levels, pixels, materials) = (self.max_level() + 1, self.pixels(), self.table.len());
+        let map_ok = |a: &[u16]| a.len() == pixels && a.iter().all(|&m| usize::from(m) < materials);
+        if self.levels.len() > levels as usize {
+            return bad(format!("{} levels done of {levels}", self.levels.len()));
+        }
+        if let Some(l) = self
+            .levels
+            .iter()
+            .find(|l| l.level >= levels || !map_ok(&l.assignment))
+        {
+            return bad(format!("the result of level {}", l.level));
+        }
+        if let Some(st) = &self.state {
+            if st.level >= levels {
+                return bad(format!("level {} of {levels}", st.level));
+            }
+            if !map_ok(&st.m0) || !map_ok(&st.current) {
+                return bad(format!("the maps of level {}", st.level));
+            }
+            if st.candidates.iter().any(|&m| usize::from(m) >= materials) {
+                return bad(format!("the candidates of level {}", st.level));
+            }
+            let regions = 1u64 << (2 * st.level);
+            if st.order.iter().any(|&r| u64::from(r) >= regions) || st.done > st.order.len() {
+                return bad(format!("the region order of level {}", st.level));
+            }
+        }
+        if let Some(r) = self.pending.iter().find(|r| !map_ok(&r.assignment)) {
+            return bad(format!("pending request {}", r.index));
+        }
+        Ok(())
     }
 
     /// Where the search stands.

@@ -68,9 +68,9 @@ fn default_pixel_mm() -> f64 {
     1.0
 }
 
-/// A change of several pixels is rendered directly, not reweighted, when its photon weights
-/// are noisier than this ([`Refinement::spread_of`]): its estimate would rest on a few
-/// photons, and a change whose estimate is too noisy to beat `z` is never taken.
+/// A differential sweep leaves out a recolour whose photon weights are noisier than this
+/// ([`Refinement::spread_of`]): its estimate would rest on a few photons and could never beat
+/// `z`, and a direct render of each would cost a full render apiece.
 pub const MAX_SPREAD: f64 = 10.0;
 
 fn default_changes_per_render() -> u32 {
@@ -291,8 +291,8 @@ impl Refinement {
     }
 
     /// [`Refinement::new`], knowing how noisy each material change's photon weights are
-    /// (`spread[i][j]`, `model::differential::weight_spread`): a change of several pixels
-    /// noisier than [`MAX_SPREAD`] is rendered directly.
+    /// (`spread[i][j]`, `model::differential::weight_spread`): a differential sweep leaves out
+    /// the recolours noisier than [`MAX_SPREAD`].
     #[allow(clippy::too_many_arguments)]
     pub fn with_spread(
         config: RefineConfig,
@@ -398,6 +398,13 @@ impl Refinement {
             self.emit_filled_sweep(changes, base, seed, photons);
             return;
         }
+        let changes: Vec<Change> = match self.config.screen {
+            Screen::Direct => changes,
+            Screen::Differential => changes
+                .into_iter()
+                .filter(|c| !self.left_out(c, &self.current, c))
+                .collect(),
+        };
         let (reweighted, direct): (Vec<usize>, Vec<usize>) = match self.config.screen {
             Screen::Direct => (Vec::new(), (0..changes.len()).collect()),
             Screen::Differential => {
@@ -440,10 +447,14 @@ impl Refinement {
             photons,
             changes,
         };
-        let relative: Vec<Change> = changes
-            .iter()
-            .map(|c| base.change_to(&self.apply(c)))
-            .collect();
+        let (changes, relative): (Vec<Change>, Vec<Change>) = changes
+            .into_iter()
+            .map(|c| {
+                let relative = base.change_to(&self.apply(&c));
+                (c, relative)
+            })
+            .filter(|(c, relative)| !self.left_out(c, &base.map, relative))
+            .unzip();
         let (reweighted, direct): (Vec<usize>, Vec<usize>) =
             (0..changes.len()).partition(|&k| self.can_reweight_on(&base.map, &relative[k]));
         let reweighted: Vec<Vec<usize>> = reweighted
@@ -556,8 +567,7 @@ impl Refinement {
         self.can_reweight_on(&self.current, change)
     }
 
-    /// Whether every pixel of `change` can be reweighted from `map`, and its weights are not
-    /// too noisy ([`Refinement::spread_of`] at most [`MAX_SPREAD`]).
+    /// Whether every pixel of `change` can be reweighted from `map`.
     fn can_reweight_on(&self, map: &[u16], change: &Change) -> bool {
         change.pixels.iter().all(|&(p, d)| {
             let from = map[p as usize];
@@ -566,7 +576,19 @@ impl Refinement {
                 .and_then(|row| row.get(usize::from(d)))
                 .copied()
                 .unwrap_or(false)
-        }) && self.spread_of(map, change) <= MAX_SPREAD
+        })
+    }
+
+    /// Whether a differential sweep rendering `map` leaves `change` (of the current map `M`,
+    /// written as `relative`, the same change of `map`) out: a recolour (several pixels set to
+    /// one material) whose photon weights are too noisy to estimate
+    /// ([`Refinement::spread_of`] above [`MAX_SPREAD`]), or that `map` cannot reweight. A
+    /// direct render of each would cost a full render apiece; direct screening tries them all.
+    fn left_out(&self, change: &Change, map: &[u16], relative: &Change) -> bool {
+        let recolour =
+            change.pixels.len() >= 2 && change.pixels.iter().all(|&(_, d)| d == change.pixels[0].1);
+        recolour
+            && (!self.can_reweight_on(map, relative) || self.spread_of(map, relative) > MAX_SPREAD)
     }
 
     /// How noisy the photon weights of `change` of `map` are: 1 for a change of at most one
@@ -1191,39 +1213,65 @@ mod tests {
     }
 
     #[test]
-    fn noisy_changes_of_several_pixels_are_rendered_directly() {
-        let start = vec![0u16; 16];
-        // 0 → 1 is nearly exact, 0 → 2 very noisy (a forward to a backward phase function).
+    fn noisy_recolours_are_left_out_of_differential_sweeps() {
+        let mut start = vec![0u16; 16];
+        for p in [5, 6, 9, 10] {
+            start[p] = 1;
+        }
+        // 0 ↔ 1 is nearly exact, anything to or from 2 very noisy (a forward to a backward
+        // phase function).
         let spread = vec![vec![1.0, 1.1, 300.0], vec![1.1, 1.0, 300.0], vec![300.0; 3]];
         let reweightable = vec![vec![true; 3]; 3];
-        let cfg = RefineConfig {
-            screen: Screen::Differential,
+        let cfg = |screen| RefineConfig {
+            screen,
+            recolour_regions: true,
+            move_objects: false,
             ..config()
         };
         let r = Refinement::with_spread(
-            cfg,
+            cfg(Screen::Differential),
             4,
             vec![0, 1, 2],
             1,
             start.clone(),
+            reweightable.clone(),
+            vec![],
+            spread.clone(),
+        );
+        let single = Change {
+            pixels: vec![(3, 2)],
+        };
+        let block_to_0 = Change {
+            pixels: [5, 6, 9, 10].map(|p| (p, 0)).to_vec(),
+        };
+        let block_to_2 = Change {
+            pixels: [5, 6, 9, 10].map(|p| (p, 2)).to_vec(),
+        };
+        assert_eq!(r.spread_of(&start, &single), 1.0);
+        assert!(r.spread_of(&start, &block_to_2) > MAX_SPREAD);
+        assert!(
+            !r.left_out(&single, &start, &single),
+            "single pixels are always tried"
+        );
+        assert!(!r.left_out(&block_to_0, &start, &block_to_0));
+        assert!(r.left_out(&block_to_2, &start, &block_to_2));
+        // The sweep estimates 16 × 2 single pixels and 2 of the 4 recolours (the background
+        // to 1 and the block to 0) in its one differential render.
+        let estimated: usize = r.pending().iter().map(|q| q.changes.len()).sum();
+        assert_eq!(r.pending().len(), 1);
+        assert_eq!(estimated, 32 + 2);
+        // Direct screening renders all four.
+        let direct = Refinement::with_spread(
+            cfg(Screen::Direct),
+            4,
+            vec![0, 1, 2],
+            1,
+            start,
             reweightable,
             vec![],
             spread,
         );
-        let one = Change {
-            pixels: vec![(3, 2)],
-        };
-        let two_mild = Change {
-            pixels: vec![(3, 1), (4, 1)],
-        };
-        let two_back = Change {
-            pixels: vec![(3, 2), (4, 2)],
-        };
-        assert_eq!(r.spread_of(&start, &one), 1.0);
-        assert!(r.can_reweight(&one), "single pixels are always reweighted");
-        assert!(r.can_reweight(&two_mild));
-        assert!(r.spread_of(&start, &two_back) > MAX_SPREAD);
-        assert!(!r.can_reweight(&two_back));
+        assert_eq!(direct.pending().len(), 1 + 32 + 4);
     }
 
     #[test]

@@ -123,6 +123,14 @@ impl Job {
         }
         let plan = Plan::resolve(&record.params, &inputs).with_context(|| format!("job {id}"))?;
         let checkpoint = Checkpoint::load(&id, store)?;
+        checkpoint
+            .search
+            .check_consistent()
+            .map_err(|e| StoreError::Damaged {
+                what: "job progress",
+                detail: e.to_string(),
+            })
+            .with_context(|| format!("job {id}"))?;
         let scoring = setup::restored_scoring(&id, &plan, &checkpoint, store)?.map(Arc::new);
         let scores = store.scores(&id)?;
         Ok(Job::assemble(id, record, plan, checkpoint, scores, scoring))

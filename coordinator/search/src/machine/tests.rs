@@ -194,6 +194,7 @@ fn restoring_at_every_step_boundary_ends_in_the_same_result() {
         // Checkpoint and restore before every step.
         let json = serde_json::to_string(&s).unwrap();
         s = serde_json::from_str(&json).unwrap();
+        s.check_consistent().unwrap();
         let pending = s.pending().to_vec();
         let scores: Vec<f64> = pending.iter().map(&scorer).collect();
         replay.push(pending);
@@ -202,6 +203,36 @@ fn restoring_at_every_step_boundary_ends_in_the_same_result() {
     assert_eq!(replay, history);
     assert_eq!(s.result(), alone.result());
     assert_eq!(s.levels(), alone.levels());
+}
+
+#[test]
+fn inconsistent_stored_states_are_refused() {
+    let truth: Vec<u16> = vec![0, 1, 1, 0, 0, 2, 2, 1, 0, 0, 0, 1, 2, 0, 1, 0];
+    let scorer = truth_scorer(&truth);
+    let mut s = search(4, 2, 11, vec![0, 1, 2]);
+    // Into level 1, where the state has maps, candidates and a region order.
+    while s.progress().level < 1 {
+        let scores: Vec<f64> = s.pending().iter().map(&scorer).collect();
+        s.submit(&scores).unwrap();
+    }
+    let good: serde_json::Value = serde_json::to_value(&s).unwrap();
+    let refused = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut v = good.clone();
+        edit(&mut v);
+        let restored: Search = serde_json::from_value(v).unwrap();
+        restored.check_consistent().unwrap_err().to_string()
+    };
+    // A level count of billions (a fuzzed record made progress loop for minutes).
+    let e = refused(&|v| v["state"]["level"] = u32::MAX.into());
+    assert!(e.contains("level 4294967295 of 3"), "{e}");
+    let e = refused(&|v| v["state"]["current"] = serde_json::json!([0, 1]));
+    assert!(e.contains("maps of level 1"), "{e}");
+    let e = refused(&|v| v["state"]["candidates"] = serde_json::json!([0, 9]));
+    assert!(e.contains("candidates"), "{e}");
+    let e = refused(&|v| v["pending"][0]["assignment"][0] = 7.into());
+    assert!(e.contains("pending request"), "{e}");
+    let e = refused(&|v| v["config"]["grid"] = 3.into());
+    assert!(e.contains("grid 3"), "{e}");
 }
 
 #[test]

@@ -33,7 +33,8 @@ pub struct FuzzArgs {
     /// Also write the JSON here.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Write the first panicking input of each parser into this folder (one file per part).
+    /// Write the first panicking input and the slowest input of each parser into this folder
+    /// (one file per part; the slowest as `slowest-PARSER.N`).
     #[arg(long)]
     pub keep_panics: Option<PathBuf>,
 }
@@ -55,6 +56,12 @@ pub struct ParserReport {
     /// Peak resident memory while this parser ran, KiB (`VmHWM`).
     pub peak_rss_kib: Option<u64>,
     pub seconds: f64,
+    /// The slowest input's seconds, and its index in the run (the same seed runs it again).
+    pub slowest_seconds: f64,
+    pub slowest_index: u64,
+    /// The slowest input's parts, when kept.
+    #[serde(skip)]
+    pub slowest_input: Option<Vec<Vec<u8>>>,
 }
 
 /// The whole run.
@@ -100,6 +107,9 @@ pub fn fuzz_one(target: &targets::Target, inputs: u64, seed: u64) -> ParserRepor
         first_panic_input: None,
         peak_rss_kib: None,
         seconds: 0.0,
+        slowest_seconds: 0.0,
+        slowest_index: 0,
+        slowest_input: None,
     };
     for i in 0..inputs {
         // The seeds as they are first, then generated and mutated inputs.
@@ -122,9 +132,25 @@ pub fn fuzz_one(target: &targets::Target, inputs: u64, seed: u64) -> ParserRepor
             }
         };
         report.inputs += 1;
+        if i > 0 && i % 100_000 == 0 {
+            eprintln!(
+                "{:<12} {i} inputs, {:.1} s so far (slowest: #{}, {:.3} s)",
+                target.name,
+                started.elapsed().as_secs_f64(),
+                report.slowest_index,
+                report.slowest_seconds
+            );
+        }
         IN_PARSER.with(|p| p.set(true));
+        let one = Instant::now();
         let outcome = catch_unwind(AssertUnwindSafe(|| (target.run)(&input)));
+        let took = one.elapsed().as_secs_f64();
         IN_PARSER.with(|p| p.set(false));
+        if took > report.slowest_seconds {
+            report.slowest_seconds = took;
+            report.slowest_index = i;
+            report.slowest_input = Some(input.clone());
+        }
         match outcome {
             Ok(true) => report.accepted += 1,
             Ok(false) => report.refused += 1,
@@ -191,14 +217,17 @@ pub fn fuzz(inputs: u64, seed: u64, only: Option<&[String]>) -> Result<FuzzRepor
     {
         let r = fuzz_one(target, inputs, seed);
         eprintln!(
-            "{:<12} {} inputs: {} accepted, {} refused, {} panics, peak RSS {} KiB, {:.1} s",
+            "{:<12} {} inputs: {} accepted, {} refused, {} panics, peak RSS {} KiB, {:.1} s \
+             (slowest input: #{}, {:.3} s)",
             r.parser,
             r.inputs,
             r.accepted,
             r.refused,
             r.panics,
             r.peak_rss_kib.unwrap_or(0),
-            r.seconds
+            r.seconds,
+            r.slowest_index,
+            r.slowest_seconds
         );
         parsers.push(r);
     }
@@ -214,12 +243,15 @@ pub fn run(args: FuzzArgs) -> Result<()> {
     let report = fuzz(args.inputs, args.seed, args.parsers.as_deref())?;
     if let Some(dir) = &args.keep_panics {
         for r in &report.parsers {
-            for (i, part) in r.first_panic_input.iter().flatten().enumerate() {
-                std::fs::create_dir_all(dir)
-                    .with_context(|| format!("cannot create {}", dir.display()))?;
-                let path = dir.join(format!("{}.{i}", r.parser));
-                std::fs::write(&path, part)
-                    .with_context(|| format!("cannot write {}", path.display()))?;
+            let kept = [("", &r.first_panic_input), ("slowest-", &r.slowest_input)];
+            for (prefix, input) in kept {
+                for (i, part) in input.iter().flatten().enumerate() {
+                    std::fs::create_dir_all(dir)
+                        .with_context(|| format!("cannot create {}", dir.display()))?;
+                    let path = dir.join(format!("{prefix}{}.{i}", r.parser));
+                    std::fs::write(&path, part)
+                        .with_context(|| format!("cannot write {}", path.display()))?;
+                }
             }
         }
     }
