@@ -492,6 +492,12 @@ impl Search {
         if grid == 0 || !grid.is_power_of_two() || grid > 4096 {
             return bad(format!("grid {grid}"));
         }
+        if let Some(problem) = self.config.photons.problem() {
+            return bad(format!("photons: {problem}"));
+        }
+        if let Some(problem) = self.config.refine.as_ref().and_then(|r| r.problem()) {
+            return bad(format!("refinement: {problem}"));
+        }
         let (levels, pixels, materials) = (self.max_level() + 1, self.pixels(), self.table.len());
         let map_ok = |a: &[u16]| a.len() == pixels && a.iter().all(|&m| usize::from(m) < materials);
         if self.levels.len() > levels as usize {

@@ -64,7 +64,7 @@ impl Photons {
     pub fn first_stage(&self, level: u32) -> Option<u32> {
         let race = self.race?;
         let full = self.level(level);
-        let first = ((f64::from(full) * race.share).round() as u32).clamp(1, full);
+        let first = ((f64::from(full) * race.share).round() as u32).clamp(1, full.max(1));
         (first < full).then_some(first)
     }
 

@@ -233,6 +233,9 @@ fn inconsistent_stored_states_are_refused() {
     assert!(e.contains("pending request"), "{e}");
     let e = refused(&|v| v["config"]["grid"] = 3.into());
     assert!(e.contains("grid 3"), "{e}");
+    // A level of no photons (a fuzzed record made racing's first stage panic).
+    let e = refused(&|v| v["config"]["photons"]["per_level"] = serde_json::json!([0, 2]));
+    assert!(e.contains("at least one photon"), "{e}");
 }
 
 #[test]
