@@ -100,7 +100,11 @@ pub async fn start(
             let mut tick = tokio::time::interval(Duration::from_millis(500));
             loop {
                 tick.tick().await;
-                if farm.locked(|s| s.sweep(Instant::now())).await.is_err() {
+                if farm
+                    .locked_durable(|s| s.sweep(Instant::now()))
+                    .await
+                    .is_err()
+                {
                     tracing::error!("the sweep failed");
                 }
                 farm.work.notify_waiters();

@@ -126,7 +126,7 @@ impl ClientService for ClientApi {
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::CancelResponse>, Status> {
         let id = request.into_inner().job_id;
-        self.0.locked(move |s| s.cancel(&id)).await??;
+        self.0.locked_durable(move |s| s.cancel(&id)).await??;
         Ok(Response::new(pb::CancelResponse {}))
     }
 
@@ -135,7 +135,7 @@ impl ClientService for ClientApi {
         request: Request<pb::JobRef>,
     ) -> Result<Response<pb::DeleteResponse>, Status> {
         let id = request.into_inner().job_id;
-        self.0.locked(move |s| s.delete(&id)).await??;
+        self.0.locked_durable(move |s| s.delete(&id)).await??;
         Ok(Response::new(pb::DeleteResponse {}))
     }
 

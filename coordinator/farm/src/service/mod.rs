@@ -55,6 +55,35 @@ impl Farm {
             .await
             .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
     }
+
+    /// [`Self::locked`] for a call that may write checkpoints: `f` runs under the lock, then,
+    /// with the lock released, the store is synced ([`Farm::sync`]) before the answer goes out.
+    pub async fn locked_durable<T: Send + 'static>(
+        self: &Arc<Self>,
+        f: impl FnOnce(&mut Scheduler) -> T + Send + 'static,
+    ) -> Result<T, Status> {
+        let farm = self.clone();
+        tokio::task::spawn_blocking(move || {
+            let out = f(&mut farm.scheduler());
+            farm.sync();
+            out
+        })
+        .await
+        .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
+    }
+
+    /// Makes the checkpoints written under the lock durable, outside it (a disk sync can take
+    /// tens of milliseconds; heartbeats and leases must not wait behind it). Concurrent syncs
+    /// share one write to disk. A failed sync is logged: the jobs keep their state in memory,
+    /// the next sync writes it, and a coordinator killed meanwhile resumes from the last
+    /// durable checkpoint, which replays to the same result.
+    pub fn sync(&self) {
+        if let Err(e) = self.store.flush() {
+            tracing::error!(
+                "cannot sync the data store: {e}; the latest checkpoints are not yet durable"
+            );
+        }
+    }
 }
 
 impl From<Refusal> for Status {

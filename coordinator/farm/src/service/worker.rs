@@ -96,7 +96,8 @@ impl WorkerService for WorkerApi {
         loop {
             let notified = self.0.work.notified();
             let worker = r.worker_id.clone();
-            let outcome = self.0.locked(move |s| s.lease(&worker)).await??;
+            // A first lease pins its job, and a lease can fail a job: both write checkpoints.
+            let outcome = self.0.locked_durable(move |s| s.lease(&worker)).await??;
             match outcome {
                 Ok(task) => {
                     return Ok(Response::new(pb::LeaseResponse {
@@ -145,6 +146,7 @@ impl WorkerService for WorkerApi {
                 let scored = work.run();
                 farm.scheduler().scored(scored);
             }
+            farm.sync();
             Ok::<(), Refusal>(())
         })
         .await
@@ -159,7 +161,9 @@ impl WorkerService for WorkerApi {
     ) -> Result<Response<pb::ReleaseResponse>, Status> {
         let r = request.into_inner();
         self.0
-            .locked(move |s| s.release(&r.worker_id, &r.job_id, r.task_id, r.attempt, &r.reason))
+            .locked_durable(move |s| {
+                s.release(&r.worker_id, &r.job_id, r.task_id, r.attempt, &r.reason)
+            })
             .await??;
         self.0.work.notify_waiters();
         Ok(Response::new(pb::ReleaseResponse {}))

@@ -1,5 +1,7 @@
 //! The sled store of a data folder: one tree per kind of record, job-prefixed keys, a schema
-//! version checked on open, and every write flushed before it returns.
+//! version checked on open. Records, blobs and deletions are flushed before they return;
+//! progress and scores, written under the coordinator's lock after every step, become durable
+//! at the next [`Store::flush`], which the coordinator calls once the lock is released.
 
 use super::score_codec::{decode_score, encode_score};
 use super::{Store, StoreError, SCHEMA_VERSION};
@@ -101,8 +103,8 @@ impl Store for SledStore {
     }
 
     fn put_progress(&self, job: &str, progress: &[u8]) -> Result<(), StoreError> {
+        // Not flushed here: the caller flushes outside the scheduler's lock.
         self.progress.insert(job.as_bytes(), progress)?;
-        self.db.flush()?;
         Ok(())
     }
 
@@ -130,7 +132,7 @@ impl Store for SledStore {
         score: Score,
         step: u64,
     ) -> Result<(), StoreError> {
-        // Not flushed here: the next progress write flushes, and a lost score is re-rendered.
+        // Not flushed here: the next flush makes it durable, and a lost score is re-rendered.
         self.scores
             .insert(prefixed(job, identity), encode_score(&score, step))?;
         Ok(())

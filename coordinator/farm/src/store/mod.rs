@@ -57,7 +57,9 @@ pub trait Store: Send + Sync {
     fn put_record(&self, job: &str, record: &[u8]) -> Result<(), StoreError>;
     /// Every stored job's record.
     fn records(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError>;
-    /// Replaces a job's progress (state after a step) and makes it durable.
+    /// Replaces a job's progress (state after a step). Reads see it at once; it is durable
+    /// after the next [`Store::flush`] (the coordinator writes it under its lock and flushes
+    /// after releasing it, before answering the request that caused it).
     fn put_progress(&self, job: &str, progress: &[u8]) -> Result<(), StoreError>;
     fn progress(&self, job: &str) -> Result<Option<Vec<u8>>, StoreError>;
     /// A named blob of a job (setup products such as the target, final outputs).

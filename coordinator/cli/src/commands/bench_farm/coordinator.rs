@@ -43,7 +43,9 @@ impl ChildCoordinator {
         }
         let log_file = std::fs::File::create(&log)
             .with_context(|| format!("cannot create {}", log.display()))?;
-        let child = Command::new(&exe)
+        let mut command = Command::new(&exe);
+        die_with_parent(&mut command);
+        let child = command
             .arg("coordinator")
             .arg("--listen")
             .arg("127.0.0.1:0")
@@ -127,6 +129,23 @@ impl ChildCoordinator {
         let line = text.lines().find(|l| l.starts_with("VmHWM:"))?;
         let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
         Some(kb * 1024)
+    }
+}
+
+/// Makes the child get SIGKILL when this process dies, however it dies: a bench stopped by
+/// `timeout` or Ctrl-C must not leave its coordinator running (it would keep a core busy and
+/// skew the next run's figures).
+fn die_with_parent(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and only calls prctl(2), which
+    // is async-signal-safe; it allocates nothing and takes no lock.
+    unsafe {
+        command.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) == -1 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
     }
 }
 

@@ -99,6 +99,12 @@ fn job_params(args: &FarmBenchArgs, index: usize) -> JobSpec {
         positions: args.positions,
         directions: args.directions,
         seed: 1 + index as u64,
+        // Every render at the full --photons, so the recording can answer it: the default
+        // search's per-level share (a tenth) and racing's first stage (a quarter of that)
+        // would ask for fewer photons than were recorded, and be rendered for real.
+        level_photons: Some(vec![args.photons]),
+        race_share: Some(1.0),
+        rescore_photons: Some(args.photons),
         name: Some(format!("bench-farm-{index}")),
         ..Default::default()
     }
