@@ -112,7 +112,12 @@ fn snapshot(scheduler: &Scheduler) -> Snapshot {
                 .filter(|l| l.worker == w.id)
                 .count(),
             completed: w.tasks_completed,
-            heartbeat_ago: now.duration_since(w.last_seen).as_secs_f64(),
+            heartbeat_ago: scheduler
+                .liveness
+                .last_seen(&w.id)
+                .map_or(f64::INFINITY, |t| {
+                    now.saturating_duration_since(t).as_secs_f64()
+                }),
         })
         .collect();
     workers.sort_by(|a, b| a.id.cmp(&b.id));

@@ -61,7 +61,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
             Scoring::Held => {
                 assert!(s.jobs[&id].is_scoring());
                 assert!(
-                    s.heartbeat(&worker),
+                    s.liveness.touch(&worker, std::time::Instant::now()),
                     "the worker is known while scores are out"
                 );
                 let nothing = s.lease(&worker).unwrap();

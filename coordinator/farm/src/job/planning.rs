@@ -63,6 +63,10 @@ impl Job {
             }
         }
         let geometry = self.plan.search_geometry;
+        // Steps answered from the cache can follow one another by the hundred: the checkpoint
+        // is written once, when the loop stops (a search state can be large, and this runs
+        // under the scheduler's lock), not after each.
+        let mut submitted = false;
         loop {
             let steps = self
                 .steps
@@ -70,8 +74,11 @@ impl Job {
                 .context("a job is planned before it is pinned")?;
             match steps.next(&mut self.checkpoint.search, &mut self.checkpoint.used)? {
                 Next::Finished => return self.finish(store),
-                Next::Submitted => self.persist(store)?,
+                Next::Submitted => submitted = true,
                 Next::Render(groups) => {
+                    if submitted {
+                        self.persist(store)?;
+                    }
                     let table = self.checkpoint.search.materials();
                     anyhow::ensure!(
                         groups.iter().all(|g| g.changes.is_empty()),

@@ -11,12 +11,15 @@ impl Scheduler {
     pub fn sweep(&mut self, now: Instant) {
         self.restore_paused(now);
         let silent_after = self.settings.heartbeat * self.settings.missed_heartbeats;
-        let gone: Vec<String> = self
-            .workers
-            .values()
-            .filter(|w| now.duration_since(w.last_seen) > silent_after)
-            .map(|w| w.id.clone())
-            .collect();
+        let mut gone = self.liveness.forget_silent(now, silent_after);
+        // A worker the registry holds but liveness does not cannot be heard from again.
+        gone.extend(
+            self.workers
+                .keys()
+                .filter(|id| self.liveness.last_seen(id).is_none() && !gone.contains(id))
+                .cloned()
+                .collect::<Vec<_>>(),
+        );
         for id in &gone {
             tracing::warn!(
                 "worker {id} missed {} heartbeats: forgotten",

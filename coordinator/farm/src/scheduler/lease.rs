@@ -35,7 +35,7 @@ impl Scheduler {
     pub fn lease(&mut self, worker_id: &str) -> Result<Result<TaskOut, String>, Refusal> {
         let worker = match self.workers.get_mut(worker_id) {
             Some(w) => {
-                w.last_seen = Instant::now();
+                self.liveness.touch(worker_id, Instant::now());
                 w.clone()
             }
             None => {

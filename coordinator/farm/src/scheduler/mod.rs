@@ -10,7 +10,9 @@
 //! they are unique across coordinator runs.
 //!
 //! - [`jobs`]: what clients ask of jobs (submit, look up, cancel, delete, why one waits).
-//! - [`registry`]: registered workers ([`WorkerEntry`]) and their heartbeats.
+//! - [`registry`]: registered workers ([`WorkerEntry`]).
+//! - [`liveness`]: when each worker was last heard from, behind its own lock, so heartbeats
+//!   never wait on the scheduler's.
 //! - [`lease`]: handing the next piece to a worker, jobs in round-robin.
 //! - [`sizing`]: how many photons a piece holds and how long its lease lasts.
 //! - [`results`]: checking a returned result against its lease and summing it; give-backs.
@@ -23,6 +25,7 @@ mod expiry;
 mod giveback;
 mod jobs;
 mod lease;
+mod liveness;
 mod registry;
 mod restore;
 mod results;
@@ -31,6 +34,7 @@ mod strikes;
 
 pub use jobs::stored_job;
 pub use lease::{Lease, TaskOut};
+pub use liveness::Liveness;
 pub use registry::WorkerEntry;
 pub use results::Rendered;
 use strikes::Strikes;
@@ -113,6 +117,8 @@ pub struct Scheduler {
     /// Stored jobs that cannot be read, with why: listed, and deletable, nothing else.
     pub damaged: BTreeMap<String, String>,
     pub workers: HashMap<String, WorkerEntry>,
+    /// Last contact per worker, shared with the services (heartbeats skip the scheduler lock).
+    pub liveness: Arc<Liveness>,
     /// By task id.
     pub leases: HashMap<u64, Lease>,
     /// Bad results per job and worker identity.
@@ -164,6 +170,7 @@ impl Scheduler {
             jobs,
             damaged,
             workers: HashMap::new(),
+            liveness: Arc::default(),
             leases: HashMap::new(),
             strikes,
             last_served: None,

@@ -1,5 +1,5 @@
 //! The registry of workers: who registered with which engine and speed (then measured on the
-//! pieces each returns), and when each was last heard from.
+//! pieces each returns). When each was last heard from is [`super::liveness`]'s.
 
 use super::Scheduler;
 use scatterfarm_model::EngineFingerprint;
@@ -14,7 +14,6 @@ pub struct WorkerEntry {
     /// The fingerprint's canonical key ([`EngineFingerprint::key`]), as jobs are pinned to it.
     pub fingerprint_key: String,
     pub photons_per_second: f64,
-    pub last_seen: Instant,
     pub tasks_completed: u64,
 }
 
@@ -61,21 +60,10 @@ impl Scheduler {
                 } else {
                     1e5
                 },
-                last_seen: Instant::now(),
                 tasks_completed: 0,
             },
         );
+        self.liveness.add(&id, Instant::now());
         id
-    }
-
-    /// Records a heartbeat; false if the worker is not known (it must register again).
-    pub fn heartbeat(&mut self, worker: &str) -> bool {
-        match self.workers.get_mut(worker) {
-            Some(w) => {
-                w.last_seen = Instant::now();
-                true
-            }
-            None => false,
-        }
     }
 }

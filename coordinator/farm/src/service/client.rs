@@ -166,7 +166,12 @@ impl ClientService for ClientApi {
                     .values()
                     .filter(|l| l.worker == w.id)
                     .count() as u32,
-                last_heartbeat_seconds_ago: now.duration_since(w.last_seen).as_secs_f64(),
+                last_heartbeat_seconds_ago: scheduler
+                    .liveness
+                    .last_seen(&w.id)
+                    .map_or(f64::INFINITY, |t| {
+                        now.saturating_duration_since(t).as_secs_f64()
+                    }),
                 tasks_completed: w.tasks_completed,
             })
             .collect();

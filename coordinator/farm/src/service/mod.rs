@@ -12,7 +12,7 @@ mod worker;
 pub use client::ClientApi;
 pub use worker::WorkerApi;
 
-use crate::scheduler::{Refusal, Scheduler};
+use crate::scheduler::{Liveness, Refusal, Scheduler};
 use crate::store::Store;
 use std::sync::{Arc, Mutex, MutexGuard};
 use tokio::sync::Notify;
@@ -26,12 +26,15 @@ pub struct Farm {
     pub store: Arc<dyn Store>,
     /// Woken when work may have appeared (a submission, a piece given back, a group done).
     pub work: Notify,
+    /// The scheduler's record of when workers were last heard from, touched without its lock.
+    pub liveness: Arc<Liveness>,
 }
 
 impl Farm {
     pub fn new(scheduler: Scheduler) -> Arc<Farm> {
         Arc::new(Farm {
             store: scheduler.store_arc(),
+            liveness: scheduler.liveness.clone(),
             scheduler: Mutex::new(scheduler),
             work: Notify::new(),
         })

@@ -81,7 +81,8 @@ impl WorkerService for WorkerApi {
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let worker = request.into_inner().worker_id;
-        let known = self.0.locked(move |s| s.heartbeat(&worker)).await?;
+        // Not the scheduler's lock: a heartbeat never waits behind results or checkpoints.
+        let known = self.0.liveness.touch(&worker, Instant::now());
         Ok(Response::new(pb::HeartbeatResponse { known }))
     }
 
@@ -125,6 +126,8 @@ impl WorkerService for WorkerApi {
         request: Request<pb::CompleteRequest>,
     ) -> Result<Response<pb::CompleteResponse>, Status> {
         let r = request.into_inner();
+        // A result is contact too: its worker is alive, however long the upload took.
+        self.0.liveness.touch(&r.worker_id, Instant::now());
         let counts = results_from_proto(&r.counts).map_err(|e| e.to_string());
         let farm = self.0.clone();
         // Off the async threads: the lock to sum the result, then, without it, the scoring of
@@ -167,5 +170,68 @@ impl WorkerService for WorkerApi {
             .await??;
         self.0.work.notify_waiters();
         Ok(Response::new(pb::ReleaseResponse {}))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scheduler::{Scheduler, Settings};
+    use crate::store::MemoryStore;
+    use scatterfarm_model::EngineFingerprint;
+
+    fn fingerprint() -> pb::EngineFingerprint {
+        scatterfarm_proto::convert::fingerprint_to_proto(&EngineFingerprint {
+            engine: "cpu".into(),
+            adapter: "test".into(),
+            driver: "x86_64".into(),
+            version: "1".into(),
+        })
+    }
+
+    /// The scheduler's lock held (as by a long checkpoint or scoring) must not hold up a
+    /// heartbeat: the sweep would forget a worker that is alive.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_heartbeat_is_answered_while_the_scheduler_is_locked() {
+        let store: Arc<dyn crate::store::Store> = Arc::new(MemoryStore::new());
+        let farm = Farm::new(Scheduler::open(store, Settings::default()).unwrap());
+        let api = WorkerApi(farm.clone());
+        let id = api
+            .register(Request::new(pb::RegisterRequest {
+                protocol: Some(pb::PROTOCOL),
+                fingerprint: Some(fingerprint()),
+                photons_per_second: 1e6,
+                name: "w".into(),
+            }))
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id;
+        let before = farm.liveness.last_seen(&id).unwrap();
+        let guard = farm.scheduler();
+        let heartbeat = api.heartbeat(Request::new(pb::HeartbeatRequest {
+            worker_id: id.clone(),
+        }));
+        // Without the lock-free path this waits for the guard, which is dropped only after:
+        // the timeout turns that deadlock into a failure.
+        let answer = tokio::time::timeout(Duration::from_secs(30), heartbeat)
+            .await
+            .expect("the heartbeat waited on the scheduler's lock")
+            .unwrap()
+            .into_inner();
+        drop(guard);
+        assert!(answer.known);
+        assert!(farm.liveness.last_seen(&id).unwrap() >= before);
+        let unknown = api
+            .heartbeat(Request::new(pb::HeartbeatRequest {
+                worker_id: "w-nobody".into(),
+            }))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(
+            !unknown.known,
+            "an unknown worker is told to register again"
+        );
     }
 }
