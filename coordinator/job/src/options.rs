@@ -253,6 +253,7 @@ impl JobSpec {
                     recolour_regions: self.refine_recolour.unwrap_or(true),
                     // Set from the geometry when the plan resolves.
                     pixel_mm: 1.0,
+                    direct_photons: self.refine_direct_photons,
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

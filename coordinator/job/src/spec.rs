@@ -110,6 +110,10 @@ pub struct JobSpec {
     /// Photons per source of a refinement's confirmation renders, on a fresh seed
     /// (likelihood: twice iterations × photons per iteration).
     pub refine_confirm_photons: Option<u32>,
+    /// Photons per source of a differential sweep's direct renders (the changes it cannot
+    /// reweight) and of the render of the current map they are paired with (default: the
+    /// sweep's photons).
+    pub refine_direct_photons: Option<u32>,
     /// A refinement change must beat the current map by more than this many paired standard
     /// errors (likelihood: 3).
     pub refine_z: Option<f64>,
@@ -169,6 +173,7 @@ impl Default for JobSpec {
             refine: None,
             refine_photons: None,
             refine_confirm_photons: None,
+            refine_direct_photons: None,
             refine_z: None,
             refine_sweeps: None,
             refine_moves: None,

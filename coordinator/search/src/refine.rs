@@ -62,6 +62,14 @@ pub struct RefineConfig {
     /// The pixel's side in mm, for how noisy reweighting is ([`Refinement::with_spread`]).
     #[serde(default = "default_pixel_mm")]
     pub pixel_mm: f64,
+    /// Photons per source of a differential sweep's direct renders (the changes it cannot
+    /// reweight, such as a scattering pixel in a non-scattering background) and of the plain
+    /// render of `M` they are paired with; `None`: the sweep's photons. Their signal is
+    /// usually large (a pixel that starts or stops scattering), so fewer photons find them,
+    /// and a sweep over a transmissive background no longer costs a full render per pixel.
+    /// Escalations double it with the others.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direct_photons: Option<u32>,
 }
 
 fn default_pixel_mm() -> f64 {
@@ -113,7 +121,7 @@ pub struct RefineRequest {
 impl RefineConfig {
     /// What is wrong with the configuration, if anything.
     pub fn problem(&self) -> Option<String> {
-        if self.photons == 0 || self.confirm_photons == 0 {
+        if self.photons == 0 || self.confirm_photons == 0 || self.direct_photons == Some(0) {
             return Some("refinement renders need at least one photon per source".into());
         }
         if !(self.z.is_finite() && self.z >= 0.0) {
@@ -175,6 +183,10 @@ enum Waiting {
         reweighted: Vec<Vec<usize>>,
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         filled: bool,
+        /// The direct renders have their own photons ([`RefineConfig::direct_photons`]): a
+        /// plain render of `M` at those photons comes before them, their reference.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        separate: bool,
     },
     /// `M` (first) and the options in order: the combined map, then the best change alone
     /// (when it differs).
@@ -425,16 +437,28 @@ impl Refinement {
         if pending.is_empty() {
             pending.push(request(self.current.clone(), Vec::new()));
         }
+        let direct_photons = self.direct_photons(photons);
+        let separate = self.config.screen == Screen::Differential
+            && !direct.is_empty()
+            && direct_photons != photons;
+        let direct_request = |assignment: Vec<u16>| RefineRequest {
+            photons: direct_photons,
+            ..request(assignment, Vec::new())
+        };
+        if separate {
+            pending.push(direct_request(self.current.clone()));
+        }
         pending.extend(
             direct
                 .iter()
-                .map(|&k| request(self.apply(&changes[k]), Vec::new())),
+                .map(|&k| direct_request(self.apply(&changes[k]))),
         );
         self.pending = pending;
         self.waiting = Some(Waiting::Sweep {
             changes,
             reweighted,
             filled: false,
+            separate,
         });
     }
 
@@ -477,11 +501,16 @@ impl Refinement {
             pending.push(request(base.map.clone(), vec![base.current.clone()]));
         }
         if !direct.is_empty() {
-            pending.push(request(self.current.clone(), Vec::new()));
+            let direct_photons = self.direct_photons(photons);
+            let direct_request = |assignment: Vec<u16>| RefineRequest {
+                photons: direct_photons,
+                ..request(assignment, Vec::new())
+            };
+            pending.push(direct_request(self.current.clone()));
             pending.extend(
                 direct
                     .iter()
-                    .map(|&k| request(self.apply(&changes[k]), Vec::new())),
+                    .map(|&k| direct_request(self.apply(&changes[k]))),
             );
         }
         self.pending = pending;
@@ -489,6 +518,7 @@ impl Refinement {
             changes,
             reweighted,
             filled: true,
+            separate: false,
         });
     }
 
@@ -531,6 +561,15 @@ impl Refinement {
             map,
             current: Change { pixels },
         })
+    }
+
+    /// Photons per source of a differential sweep's direct renders, for a sweep of `photons`
+    /// (already escalated).
+    fn direct_photons(&self, photons: u32) -> u32 {
+        match self.config.direct_photons {
+            Some(d) => self.escalated(d).min(photons),
+            None => photons,
+        }
     }
 
     /// `photons` doubled for every escalation so far (at most 2³¹).
@@ -818,7 +857,8 @@ impl Refinement {
                 changes,
                 reweighted,
                 filled,
-            } => self.sweep_scored(changes, reweighted, filled, scores),
+                separate,
+            } => self.sweep_scored(changes, reweighted, filled || separate, filled, scores),
             Waiting::Confirm {
                 options,
                 reweighted,
@@ -828,22 +868,24 @@ impl Refinement {
         Ok(())
     }
 
+    /// A sweep's scores. With `own_reference`, the direct renders are paired with the plain
+    /// render of `M` just before them (on the filled base, or at their own photons).
     fn sweep_scored(
         &mut self,
         changes: Vec<Change>,
         reweighted: Vec<Vec<usize>>,
+        own_reference: bool,
         filled: bool,
         scores: &[BlockScore],
     ) {
-        // On the filled base, `M` is the first render's first change, and the direct renders
-        // are paired with a plain render of `M` before them.
+        // On the filled base, `M` is the first render's first change.
         let n_differential = reweighted.len().max(1);
         let reference = if filled {
             scores[0].estimate(0).unwrap_or(scores[0])
         } else {
             scores[0]
         };
-        let direct_reference = if filled {
+        let direct_reference = if own_reference {
             scores.get(n_differential).copied().unwrap_or(reference)
         } else {
             reference
@@ -858,7 +900,7 @@ impl Refinement {
                 of_change[k] = scores[r].estimate(j + offset).map(|s| (s, reference));
             }
         }
-        let first_direct = n_differential + usize::from(filled);
+        let first_direct = n_differential + usize::from(own_reference);
         let mut listed = vec![false; changes.len()];
         for ks in &reweighted {
             for &k in ks {
@@ -1091,15 +1133,20 @@ mod tests {
             escalations: 0,
             recolour_regions: false,
             pixel_mm: 1.0,
+            direct_photons: None,
         }
     }
 
     /// Scores from a known truth: each block is minus the number of wrong pixels, plus noise
-    /// that pairs cancel (the same per seed for every map).
-    fn score_of(truth: &[u16], map: &[u16], seed: u64) -> (f64, Vec<f64>) {
+    /// that pairs cancel (the same per seed and photons for every map; fewer photons score
+    /// higher, as a deviance does, so a render paired with one of other photons misleads).
+    fn score_of(truth: &[u16], map: &[u16], seed: u64, photons: u32) -> (f64, Vec<f64>) {
         let wrong = truth.iter().zip(map).filter(|(a, b)| a != b).count() as f64;
         let blocks: Vec<f64> = (0..8)
-            .map(|b| -wrong / 8.0 + ((seed % 97) as f64) * 0.01 + f64::from(b) * 0.001)
+            .map(|b| {
+                -wrong / 8.0 + ((seed % 97) as f64) * 0.01 + f64::from(b) * 0.001
+                    - f64::from(photons) * 0.01
+            })
             .collect();
         (blocks.iter().sum(), blocks)
     }
@@ -1136,11 +1183,11 @@ mod tests {
                             for &(p, m) in &c.pixels {
                                 a[p as usize] = m;
                             }
-                            let (value, blocks) = score_of(truth, &a, q.seed);
+                            let (value, blocks) = score_of(truth, &a, q.seed, q.photons);
                             Some(ChangeScore { value, blocks })
                         })
                         .collect();
-                    (score_of(truth, &q.assignment, q.seed), changes)
+                    (score_of(truth, &q.assignment, q.seed, q.photons), changes)
                 })
                 .collect();
             let scores: Vec<BlockScore> = scored
@@ -1371,6 +1418,54 @@ mod tests {
         assert_eq!(r.current().0, &truth[..]);
         let direct = run(&truth, vec![0; 16], vec![0, 1, 2]);
         assert_eq!(r.current().0, direct.current().0);
+    }
+
+    /// The changes a differential sweep cannot reweight (here 0 → 2, like a scattering pixel
+    /// in a transmissive background) are rendered with `direct_photons`, paired with a render
+    /// of `M` at those photons (scores at other photons differ: a wrong pairing would take
+    /// every one of them), and the refinement still ends at the truth.
+    #[test]
+    fn direct_renders_of_a_differential_sweep_have_their_own_photons() {
+        let mut truth = vec![0u16; 16];
+        truth[5] = 1;
+        truth[10] = 2;
+        let reweightable = vec![
+            vec![true, true, false],
+            vec![true, true, false],
+            vec![true, true, true],
+        ];
+        let cfg = RefineConfig {
+            screen: Screen::Differential,
+            changes_per_render: 10,
+            direct_photons: Some(25),
+            ..config()
+        };
+        let first = Refinement::new(
+            cfg.clone(),
+            4,
+            vec![0, 1, 2],
+            1,
+            vec![0; 16],
+            reweightable.clone(),
+            Vec::new(),
+        );
+        let pending = first.pending();
+        // 16 reweighted changes (0 → 1) in two differential renders, then M and the 16
+        // direct changes (0 → 2) at 25 photons.
+        assert_eq!(pending.len(), 2 + 1 + 16);
+        assert!(pending[..2].iter().all(|q| q.photons == 100));
+        assert!(pending[2..].iter().all(|q| q.photons == 25));
+        assert_eq!(pending[2].assignment, vec![0; 16]);
+        assert!(pending[2].changes.is_empty());
+        let r = run_with(
+            cfg,
+            &truth,
+            vec![0; 16],
+            vec![0, 1, 2],
+            reweightable,
+            Vec::new(),
+        );
+        assert_eq!(r.current().0, &truth[..]);
     }
 
     /// A pixel whose material nothing reweights out of to the background (3, like a

@@ -129,6 +129,11 @@ pub struct JobArgs {
     /// iterations × photons per iteration).
     #[arg(long, value_name = "N")]
     pub refine_confirm_photons: Option<u32>,
+    /// Photons per source of a differential sweep's direct renders (the changes it cannot
+    /// reweight, e.g. a scattering pixel in a transmissive background) and of the render of
+    /// the current map they are paired with (default: the sweep's photons).
+    #[arg(long, value_name = "N")]
+    pub refine_direct_photons: Option<u32>,
     /// A refinement change must beat the current map by more than this many paired standard
     /// errors (likelihood: 3).
     #[arg(long, value_name = "Z")]
@@ -189,6 +194,7 @@ impl JobArgs {
             refine: self.refine,
             refine_photons: self.refine_photons,
             refine_confirm_photons: self.refine_confirm_photons,
+            refine_direct_photons: self.refine_direct_photons,
             refine_z: self.refine_z,
             refine_sweeps: self.refine_sweeps,
             refine_moves: self.refine_moves,

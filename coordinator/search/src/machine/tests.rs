@@ -700,6 +700,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         escalations: 0,
         recolour_regions: true,
         pixel_mm: 1.0,
+        direct_photons: None,
     };
     let config = SearchConfig {
         grid: 4,
