@@ -53,10 +53,7 @@ impl Farm {
         self: &Arc<Self>,
         f: impl FnOnce(&mut Scheduler) -> T + Send + 'static,
     ) -> Result<T, Status> {
-        let farm = self.clone();
-        tokio::task::spawn_blocking(move || f(&mut farm.scheduler()))
-            .await
-            .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
+        self.blocking(move |farm| f(&mut farm.scheduler())).await
     }
 
     /// [`Self::locked`] for a call that may write checkpoints: `f` runs under the lock, then,
@@ -65,14 +62,23 @@ impl Farm {
         self: &Arc<Self>,
         f: impl FnOnce(&mut Scheduler) -> T + Send + 'static,
     ) -> Result<T, Status> {
-        let farm = self.clone();
-        tokio::task::spawn_blocking(move || {
+        self.blocking(move |farm| {
             let out = f(&mut farm.scheduler());
             farm.sync();
             out
         })
         .await
-        .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
+    }
+
+    /// Runs `f` on a blocking thread.
+    async fn blocking<T: Send + 'static>(
+        self: &Arc<Self>,
+        f: impl FnOnce(&Farm) -> T + Send + 'static,
+    ) -> Result<T, Status> {
+        let farm = self.clone();
+        tokio::task::spawn_blocking(move || f(&farm))
+            .await
+            .map_err(|e| Status::internal(format!("a request handler failed: {e}")))
     }
 
     /// Makes the checkpoints written under the lock durable, outside it (a disk sync can take
