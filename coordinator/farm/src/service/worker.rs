@@ -208,18 +208,30 @@ mod tests {
             .into_inner()
             .worker_id;
         let before = farm.liveness.last_seen(&id).unwrap();
-        let guard = farm.scheduler();
+        // Another thread holds the scheduler's lock until told to let go.
+        let (locked, is_locked) = std::sync::mpsc::channel();
+        let (release, released) = std::sync::mpsc::channel::<()>();
+        let holder = {
+            let farm = farm.clone();
+            std::thread::spawn(move || {
+                let _guard = farm.scheduler();
+                locked.send(()).unwrap();
+                let _ = released.recv();
+            })
+        };
+        is_locked.recv().unwrap();
         let heartbeat = api.heartbeat(Request::new(pb::HeartbeatRequest {
             worker_id: id.clone(),
         }));
-        // Without the lock-free path this waits for the guard, which is dropped only after:
-        // the timeout turns that deadlock into a failure.
+        // Without the lock-free path this waits for the lock, released only after: the
+        // timeout turns that deadlock into a failure.
         let answer = tokio::time::timeout(Duration::from_secs(30), heartbeat)
             .await
             .expect("the heartbeat waited on the scheduler's lock")
             .unwrap()
             .into_inner();
-        drop(guard);
+        release.send(()).unwrap();
+        holder.join().unwrap();
         assert!(answer.known);
         assert!(farm.liveness.last_seen(&id).unwrap() >= before);
         let unknown = api
