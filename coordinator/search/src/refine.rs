@@ -437,22 +437,11 @@ impl Refinement {
         if pending.is_empty() {
             pending.push(request(self.current.clone(), Vec::new()));
         }
-        let direct_photons = self.direct_photons(photons);
         let separate = self.config.screen == Screen::Differential
             && !direct.is_empty()
-            && direct_photons != photons;
-        let direct_request = |assignment: Vec<u16>| RefineRequest {
-            photons: direct_photons,
-            ..request(assignment, Vec::new())
-        };
-        if separate {
-            pending.push(direct_request(self.current.clone()));
-        }
-        pending.extend(
-            direct
-                .iter()
-                .map(|&k| direct_request(self.apply(&changes[k]))),
-        );
+            && self.direct_photons(photons) != photons;
+        let maps = direct.iter().map(|&k| self.apply(&changes[k])).collect();
+        pending.extend(self.direct_renders(seed, photons, separate, maps));
         self.pending = pending;
         self.waiting = Some(Waiting::Sweep {
             changes,
@@ -501,17 +490,8 @@ impl Refinement {
             pending.push(request(base.map.clone(), vec![base.current.clone()]));
         }
         if !direct.is_empty() {
-            let direct_photons = self.direct_photons(photons);
-            let direct_request = |assignment: Vec<u16>| RefineRequest {
-                photons: direct_photons,
-                ..request(assignment, Vec::new())
-            };
-            pending.push(direct_request(self.current.clone()));
-            pending.extend(
-                direct
-                    .iter()
-                    .map(|&k| direct_request(self.apply(&changes[k]))),
-            );
+            let maps = direct.iter().map(|&k| self.apply(&changes[k])).collect();
+            pending.extend(self.direct_renders(seed, photons, true, maps));
         }
         self.pending = pending;
         self.waiting = Some(Waiting::Sweep {
@@ -561,6 +541,29 @@ impl Refinement {
             map,
             current: Change { pixels },
         })
+    }
+
+    /// A sweep's plain renders of `maps` at its direct photons ([`Self::direct_photons`]),
+    /// after a render of `M` at those photons when `with_reference`.
+    fn direct_renders(
+        &self,
+        seed: u64,
+        photons: u32,
+        with_reference: bool,
+        maps: Vec<Vec<u16>>,
+    ) -> Vec<RefineRequest> {
+        let photons = self.direct_photons(photons);
+        with_reference
+            .then(|| self.current.clone())
+            .into_iter()
+            .chain(maps)
+            .map(|assignment| RefineRequest {
+                assignment,
+                seed,
+                photons,
+                changes: Vec::new(),
+            })
+            .collect()
     }
 
     /// Photons per source of a differential sweep's direct renders, for a sweep of `photons`
