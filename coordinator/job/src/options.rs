@@ -144,6 +144,10 @@ pub mod likelihood {
     pub const REFINE_SWEEPS: u32 = 8;
     /// Doublings of the refinement's photons where it would otherwise end.
     pub const REFINE_ESCALATIONS: u32 = 2;
+    /// A sweep of a map swept before renders directly only the changes whose paired z there
+    /// was above this: on transmissive backgrounds, where every change to a scattering pixel
+    /// is a render of its own, escalations otherwise re-render hundreds of clear losers.
+    pub const REFINE_RETEST_Z: f64 = -1.0;
     /// How sweeps score their changes.
     pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
         scatterfarm_search::refine::Screen::Direct;
@@ -254,6 +258,7 @@ impl JobSpec {
                     // Set from the geometry when the plan resolves.
                     pixel_mm: 1.0,
                     direct_photons: self.refine_direct_photons,
+                    retest_z: Some(self.refine_retest_z.unwrap_or(likelihood::REFINE_RETEST_Z)),
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

@@ -130,6 +130,9 @@ pub struct JobSpec {
     /// Whether refinement sweeps also set each connected region (of two pixels or more)
     /// wholly to each other candidate material (likelihood: true).
     pub refine_recolour: Option<bool>,
+    /// A refinement sweep of a map swept before renders directly only the changes whose
+    /// paired z there was above this (likelihood: -1; `-inf`: every change).
+    pub refine_retest_z: Option<f64>,
     /// A label for job listings (job files only, no flag).
     pub name: Option<String>,
     /// Pin the job to this engine fingerprint instead of the first worker's (job files only, no flag).
@@ -180,6 +183,7 @@ impl Default for JobSpec {
             refine_screen: None,
             refine_escalations: None,
             refine_recolour: None,
+            refine_retest_z: None,
             name: None,
             engine_fingerprint: None,
             any_engine: false,

@@ -70,6 +70,14 @@ pub struct RefineConfig {
     /// Escalations double it with the others.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub direct_photons: Option<u32>,
+    /// A sweep of a map swept before (after a stall, or escalated) renders directly only the
+    /// changes whose paired z on that map's last sweep was above this; `None`: every change.
+    /// A change that does not come close at `N` photons is expected to lose by √2 more
+    /// standard errors at `2N` (the difference stays, its error shrinks), so re-rendering it
+    /// is where an escalation's photons went. Changes a differential render estimates cost
+    /// no photons of their own and are always tried.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retest_z: Option<f64>,
 }
 
 fn default_pixel_mm() -> f64 {
@@ -132,6 +140,11 @@ impl RefineConfig {
         }
         if self.changes_per_render == 0 {
             return Some("a differential render needs room for at least one change".into());
+        }
+        if self.retest_z.is_some_and(f64::is_nan) {
+            return Some(
+                "the refinement's retest z must be a number (or -inf: every change)".into(),
+            );
         }
         if !(self.pixel_mm.is_finite() && self.pixel_mm > 0.0) {
             return Some(format!(
@@ -245,6 +258,13 @@ impl Base {
     }
 }
 
+/// The changes of a map that came within reach on its last sweep ([`RefineConfig::retest_z`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Reach {
+    map: Vec<u16>,
+    changes: BTreeSet<Vec<(u32, u16)>>,
+}
+
 /// The refinement state machine.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Refinement {
@@ -273,6 +293,9 @@ pub struct Refinement {
     /// Doublings of the photons so far.
     #[serde(default)]
     escalation: u32,
+    /// What the last sweep found within reach of `z`, on the map it swept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    reach: Option<Reach>,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -329,6 +352,7 @@ impl Refinement {
             sweep: 0,
             stalls: 0,
             escalation: 0,
+            reach: None,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -411,10 +435,11 @@ impl Refinement {
             return;
         }
         let changes: Vec<Change> = match self.config.screen {
-            Screen::Direct => changes,
+            Screen::Direct => changes.into_iter().filter(|c| self.retested(c)).collect(),
             Screen::Differential => changes
                 .into_iter()
                 .filter(|c| !self.left_out(c, &self.current, c))
+                .filter(|c| self.can_reweight(c) || self.retested(c))
                 .collect(),
         };
         let (reweighted, direct): (Vec<usize>, Vec<usize>) = match self.config.screen {
@@ -467,6 +492,7 @@ impl Refinement {
                 (c, relative)
             })
             .filter(|(c, relative)| !self.left_out(c, &base.map, relative))
+            .filter(|(c, relative)| self.can_reweight_on(&base.map, relative) || self.retested(c))
             .unzip();
         let (reweighted, direct): (Vec<usize>, Vec<usize>) =
             (0..changes.len()).partition(|&k| self.can_reweight_on(&base.map, &relative[k]));
@@ -601,6 +627,18 @@ impl Refinement {
         } else {
             self.waiting = None;
             self.pending.clear();
+        }
+    }
+
+    /// Whether a sweep of the current map renders `change` (directly): always, unless the
+    /// map was swept before and `change` did not come within [`RefineConfig::retest_z`] of
+    /// beating it there.
+    fn retested(&self, change: &Change) -> bool {
+        match &self.reach {
+            Some(reach) if self.config.retest_z.is_some() && reach.map == self.current => {
+                reach.changes.contains(&change.pixels)
+            }
+            _ => true,
         }
     }
 
@@ -917,12 +955,31 @@ impl Refinement {
                 .copied()
                 .map(|s| (s, direct_reference));
         }
-        let mut ranked: Vec<(f64, usize)> = of_change
+        let z_of_change: Vec<Option<f64>> = of_change
+            .iter()
+            .map(|s| {
+                let (s, against) = (*s)?;
+                self.z_of(s, against)
+            })
+            .collect();
+        if let Some(retest_z) = self.config.retest_z {
+            // A change without a z (no blocks to pair) stays in reach.
+            let changes = changes
+                .iter()
+                .zip(&z_of_change)
+                .filter(|(_, z)| z.is_none_or(|z| z > retest_z))
+                .map(|(c, _)| c.pixels.clone())
+                .collect();
+            self.reach = Some(Reach {
+                map: self.current.clone(),
+                changes,
+            });
+        }
+        let mut ranked: Vec<(f64, usize)> = z_of_change
             .iter()
             .enumerate()
-            .filter_map(|(k, s)| {
-                let (s, against) = (*s)?;
-                let z = self.z_of(s, against)?;
+            .filter_map(|(k, z)| {
+                let z = (*z)?;
                 (z > self.config.z).then_some((z, k))
             })
             .collect();
@@ -1137,6 +1194,7 @@ mod tests {
             recolour_regions: false,
             pixel_mm: 1.0,
             direct_photons: None,
+            retest_z: None,
         }
     }
 
@@ -1469,6 +1527,75 @@ mod tests {
             Vec::new(),
         );
         assert_eq!(r.current().0, &truth[..]);
+    }
+
+    /// Scores `request` (a direct render) for [`an_escalated_sweep_retests_only_what_came_close`]:
+    /// minus the wrong pixels per block, and for a map whose pixel 3 is 1, noise around a
+    /// slightly worse mean (z about −0.4 against the truth), so only that change comes close.
+    fn close_call_score(truth: &[u16], request: &RefineRequest) -> (f64, Vec<f64>) {
+        let wrong = truth
+            .iter()
+            .zip(&request.assignment)
+            .filter(|(a, b)| a != b)
+            .count() as f64;
+        let close = request.assignment[3] == 1 && wrong == 1.0;
+        let blocks: Vec<f64> = (0..8)
+            .map(|b| {
+                if close {
+                    if b % 2 == 0 {
+                        0.3
+                    } else {
+                        -0.4
+                    }
+                } else {
+                    -wrong / 8.0
+                }
+            })
+            .collect();
+        (blocks.iter().sum(), blocks)
+    }
+
+    /// After a sweep of the right map finds nothing, the escalated sweep renders only the
+    /// change that came within `retest_z` (and `M`); without `retest_z`, every change again.
+    #[test]
+    fn an_escalated_sweep_retests_only_what_came_close() {
+        let truth = vec![0u16; 16];
+        let second_sweep = |retest_z: Option<f64>| {
+            let cfg = RefineConfig {
+                escalations: 1,
+                move_objects: false,
+                retest_z,
+                ..config()
+            };
+            let mut r =
+                Refinement::new(cfg, 4, vec![0, 1], 1, truth.clone(), Vec::new(), Vec::new());
+            assert_eq!(r.pending().len(), 1 + 16, "M and every pixel turned to 1");
+            let scored: Vec<(f64, Vec<f64>)> = r
+                .pending()
+                .iter()
+                .map(|q| close_call_score(&truth, q))
+                .collect();
+            let scores: Vec<BlockScore> = scored
+                .iter()
+                .map(|(v, b)| BlockScore {
+                    value: *v,
+                    blocks: b,
+                    changes: &[],
+                })
+                .collect();
+            r.submit(&scores).unwrap();
+            assert!(!r.is_finished(), "the sweep found nothing, so it escalates");
+            assert!(r.pending().iter().all(|q| q.photons == 200));
+            r.pending()
+                .iter()
+                .map(|q| q.assignment.clone())
+                .collect::<Vec<_>>()
+        };
+        let mut close = truth.clone();
+        close[3] = 1;
+        assert_eq!(second_sweep(Some(-1.0)), vec![truth.clone(), close]);
+        assert_eq!(second_sweep(Some(0.0)), vec![truth.clone()]);
+        assert_eq!(second_sweep(None).len(), 1 + 16);
     }
 
     /// A pixel whose material nothing reweights out of to the background (3, like a

@@ -157,6 +157,11 @@ pub struct JobArgs {
     /// (objects and background) wholly to each other candidate material (likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub refine_recolour: Option<bool>,
+    /// A refinement sweep of a map swept before (after a stall, or escalated) renders
+    /// directly only the changes whose paired z on its last sweep was above this; changes a
+    /// differential render estimates are always tried (likelihood: -1; -inf: every change).
+    #[arg(long, value_name = "Z", allow_hyphen_values = true)]
+    pub refine_retest_z: Option<f64>,
 }
 
 impl JobArgs {
@@ -201,6 +206,7 @@ impl JobArgs {
             refine_screen: self.refine_screen,
             refine_escalations: self.refine_escalations,
             refine_recolour: self.refine_recolour,
+            refine_retest_z: self.refine_retest_z,
             ..JobSpec::default()
         }
     }

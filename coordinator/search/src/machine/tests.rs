@@ -701,6 +701,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         recolour_regions: true,
         pixel_mm: 1.0,
         direct_photons: None,
+        retest_z: None,
     };
     let config = SearchConfig {
         grid: 4,
