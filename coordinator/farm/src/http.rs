@@ -423,35 +423,55 @@ fn png_response(png: Arc<Vec<u8>>) -> Response {
 }
 
 async fn map_png(State(web): State<Web>, Path(id): Path<String>) -> Response {
-    let picture = {
-        let scheduler = web.farm.scheduler();
-        let Some(job) = scheduler.jobs.get(&id) else {
-            return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
-        };
-        let search = &job.checkpoint.search;
-        let done = search.progress().renders_done;
-        let cached = web.maps.lock().ok().and_then(|m| {
+    // Under the lock (on a blocking thread) only the job's progress, and its map when the
+    // cached picture is not of that progress; a second try (the cache changed meanwhile)
+    // always takes the map.
+    let cached = |done: Option<u64>| {
+        web.maps.lock().ok().and_then(|m| {
             m.get(&id)
-                .filter(|(at, _)| *at == done)
-                .map(|c| c.1.clone())
-        });
-        if let Some(png) = cached {
-            return png_response(png);
-        }
-        let best = search
-            .result()
-            .map(|r| r.assignment.clone())
-            .or_else(|| search.current_best().map(|b| b.0));
-        best.map(|a| {
-            (
-                a,
-                job.plan.config.grid as usize,
-                search.table().clone(),
-                done,
-            )
+                .filter(|(at, _)| done.is_none_or(|d| *at == d))
+                .map(|c| (c.0, c.1.clone()))
         })
     };
-    let Some((assignment, grid, table, done)) = picture else {
+    let mut picture = None;
+    let mut done = 0;
+    for cached_at in [cached(None).map(|c| c.0), None] {
+        let wanted = id.clone();
+        let taken = web
+            .farm
+            .locked(move |s| {
+                let job = s.jobs.get(&wanted)?;
+                let search = &job.checkpoint.search;
+                let done = search.progress().renders_done;
+                if cached_at == Some(done) {
+                    return Some((done, None));
+                }
+                let best = search
+                    .result()
+                    .map(|r| r.assignment.clone())
+                    .or_else(|| search.current_best().map(|b| b.0));
+                let picture =
+                    best.map(|a| (a, job.plan.config.grid as usize, search.table().clone()));
+                Some((done, Some(picture)))
+            })
+            .await;
+        let Ok(Some((at, taken))) = taken else {
+            return (StatusCode::NOT_FOUND, format!("no job {id}")).into_response();
+        };
+        done = at;
+        match taken {
+            Some(p) => {
+                picture = Some(p);
+                break;
+            }
+            None => {
+                if let Some((_, png)) = cached(Some(done)) {
+                    return png_response(png);
+                }
+            }
+        }
+    }
+    let Some((assignment, grid, table)) = picture.flatten() else {
         return (StatusCode::NOT_FOUND, "nothing scored yet").into_response();
     };
     let img = picture::material_map(&assignment, grid, &table, picture::cell_size(grid).min(32));

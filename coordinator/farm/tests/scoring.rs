@@ -88,7 +88,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
 fn materials(s: &Scheduler, id: &str) -> Vec<u8> {
     let job = &s.jobs[id];
     assert_eq!(job.checkpoint.state, JobState::Finished);
-    job.stored_outputs(s.store()).unwrap()["materials.npy"].clone()
+    job.outputs().unwrap()["materials.npy"].clone()
 }
 
 #[test]

@@ -4,6 +4,7 @@
 
 mod common;
 
+use scatterfarm_coordinator::job::outputs::stored_outputs;
 use scatterfarm_coordinator::job::JobState;
 use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
 use scatterfarm_coordinator::status::{all_statuses, state_name, status_of};
@@ -76,10 +77,17 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
         }
     }
     assert_eq!(paused_seen, fault.is_some(), "paused or not");
-    let job = &s.jobs[&id];
-    assert_eq!(job.checkpoint.state, JobState::Finished);
-    let npy = job.stored_outputs(store.as_ref()).unwrap()["materials.npy"].clone();
-    (npy, store.writes() - submitted)
+    assert_eq!(s.jobs[&id].checkpoint.state, JobState::Finished);
+    let writes = store.writes() - submitted;
+    // The outputs are drawn and stored as the farm does it, off the lock, once.
+    let due = s.take_due_outputs();
+    assert_eq!(due.len(), 1, "the finished job's outputs are due");
+    assert!(s.take_due_outputs().is_empty(), "and due once");
+    due[0].store(store.as_ref()).unwrap();
+    let outputs = stored_outputs(store.as_ref(), &id)
+        .unwrap()
+        .expect("stored outputs");
+    (outputs["materials.npy"].clone(), writes)
 }
 
 #[test]
@@ -87,8 +95,8 @@ fn a_job_whose_store_fails_pauses_and_resumes_to_the_reference_map() {
     let clean = Arc::new(MemoryStore::new());
     let (reference, writes) = reconstruct(&clean, None);
     assert!(writes > 10, "{writes} writes");
-    // The first write (the pin), one in the middle (a score or progress), the last (an output
-    // file); healed at once, or after a retry that failed too.
+    // The first write (the pin), one in the middle (a score or progress), the last (the
+    // finished checkpoint); healed at once, or after a retry that failed too.
     for (from, failing) in [(1, 0), (writes / 2, 1), (writes, 0)] {
         let store = Arc::new(MemoryStore::new());
         let (npy, _) = reconstruct(&store, Some((from, failing)));

@@ -7,7 +7,8 @@
 //! - `planning`: its work cut into render groups through the search's step driver, and the
 //!   groups taken back as they complete.
 //! - `setup`: the setup's end (ε and the target), and its scoring rebuilt on restore.
-//! - `outputs`: the files `reconstruct` writes, made and stored.
+//! - [`outputs`]: the files `reconstruct` writes, copied out under the lock, drawn and stored
+//!   after it.
 //! - `pace`: photons per second and the time left.
 //! - [`scoring`]: a complete search group scored away from the scheduler's lock.
 //! - [`faults`]: a job paused when the store fails, and restored from it.
@@ -20,7 +21,7 @@
 
 pub mod checkpoint;
 pub mod faults;
-mod outputs;
+pub mod outputs;
 mod pace;
 pub mod pinning;
 mod planning;
@@ -29,6 +30,7 @@ pub mod scoring;
 mod setup;
 
 pub use checkpoint::{Checkpoint, JobState};
+pub use outputs::OutputSource;
 pub use pinning::ANY_ENGINE;
 pub use record::JobRecord;
 
@@ -70,6 +72,9 @@ pub struct Job {
     last_active: Instant,
     /// Set while the job waits to be restored after a store fault.
     pub paused: Option<faults::Pause>,
+    /// The job finished and its outputs are still to be stored (off the lock:
+    /// [`outputs`]).
+    pub outputs_due: bool,
 }
 
 impl Job {
@@ -164,6 +169,7 @@ impl Job {
             session_photons: 0,
             last_active: Instant::now(),
             paused: None,
+            outputs_due: false,
         }
     }
 
@@ -213,13 +219,13 @@ impl Job {
         Ok(())
     }
 
-    /// Marks the job finished and stores its outputs, then that it finished: a stored finished
-    /// job always has its outputs.
+    /// Marks the job finished and stores that; its outputs are drawn and stored after the
+    /// lock is released ([`outputs`]).
     fn finish(&mut self, store: &dyn Store) -> Result<()> {
         self.checkpoint.state = JobState::Finished;
         self.account_time();
-        self.store_outputs(store)?;
         self.checkpoint.save(&self.id, store)?;
+        self.outputs_due = true;
         tracing::info!(
             "job {} finished: similarity {:.4}",
             self.id,

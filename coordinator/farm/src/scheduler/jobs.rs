@@ -1,7 +1,7 @@
 //! What clients ask of jobs: submit, look up, cancel, delete, and why an active job waits.
 
 use super::{Refusal, Scheduler};
-use crate::job::Job;
+use crate::job::{Job, OutputSource};
 use crate::store::Store;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
@@ -27,6 +27,20 @@ impl Scheduler {
         tracing::info!("job {id} submitted ({})", job.name());
         self.jobs.insert(id.clone(), job);
         id
+    }
+
+    /// What the outputs of the jobs that finished since the last call are made from (their
+    /// flags cleared): the farm draws and stores them off the lock.
+    pub fn take_due_outputs(&mut self) -> Vec<OutputSource> {
+        let mut due = Vec::new();
+        for job in self.jobs.values_mut().filter(|j| j.outputs_due) {
+            job.outputs_due = false;
+            match job.output_source() {
+                Ok(source) => due.push(source),
+                Err(e) => tracing::error!("job {}: no outputs to store: {e:#}", job.id),
+            }
+        }
+        due
     }
 
     pub fn job(&self, id: &str) -> Result<&Job, Refusal> {

@@ -2,6 +2,7 @@
 //! deleting them, and listing jobs and workers.
 
 use super::Farm;
+use crate::job::outputs::stored_outputs;
 use crate::job::JobState;
 use crate::scheduler::stored_job;
 use crate::status::{all_statuses, is_terminal, job_status, status_of};
@@ -101,18 +102,30 @@ impl ClientService for ClientApi {
         let id = request.into_inner().job_id;
         let farm = self.0.clone();
         let result = tokio::task::spawn_blocking(move || -> Result<pb::JobResult, Status> {
-            let scheduler = farm.scheduler();
-            let job = scheduler.job(&id)?;
-            let finished = job.checkpoint.state == JobState::Finished;
-            let files = if finished {
-                job.stored_outputs(scheduler.store())
+            // The files are read from the store, or drawn, without the lock: under it only
+            // what they are made from is copied.
+            let (finished, status) = {
+                let scheduler = farm.scheduler();
+                let job = scheduler.job(&id)?;
+                let finished = job.checkpoint.state == JobState::Finished;
+                (finished, job_status(&scheduler, job))
+            };
+            let failed = |e: anyhow::Error| Status::failed_precondition(format!("job {id}: {e:#}"));
+            let stored = if finished {
+                stored_outputs(farm.store.as_ref(), &id).map_err(failed)?
             } else {
-                job.outputs()
-            }
-            .map_err(|e| Status::failed_precondition(format!("job {id}: {e:#}")))?;
+                None
+            };
+            let files = match stored {
+                Some(files) => files,
+                None => {
+                    let source = farm.scheduler().job(&id)?.output_source();
+                    source.and_then(|s| s.render()).map_err(failed)?
+                }
+            };
             Ok(pb::JobResult {
                 partial: !finished,
-                status: Some(job_status(&scheduler, job)),
+                status: Some(status),
                 files: files.into_iter().map(|(k, v)| (k, v.into())).collect(),
             })
         })

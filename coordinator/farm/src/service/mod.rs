@@ -32,12 +32,15 @@ pub struct Farm {
 
 impl Farm {
     pub fn new(scheduler: Scheduler) -> Arc<Farm> {
-        Arc::new(Farm {
+        let farm = Arc::new(Farm {
             store: scheduler.store_arc(),
             liveness: scheduler.liveness.clone(),
             scheduler: Mutex::new(scheduler),
             work: Notify::new(),
-        })
+        });
+        // Jobs that finished while they were restored.
+        farm.store_due_outputs();
+        farm
     }
 
     /// The scheduler, even if a panic poisoned the lock (the state stays consistent per call).
@@ -64,10 +67,26 @@ impl Farm {
     ) -> Result<T, Status> {
         self.blocking(move |farm| {
             let out = f(&mut farm.scheduler());
+            farm.store_due_outputs();
             farm.sync();
             out
         })
         .await
+    }
+
+    /// Draws and stores the outputs of the jobs that finished (`Job::outputs_due`), with the
+    /// scheduler's lock held only to copy what they are made from. A failure is logged: the
+    /// outputs are drawn again from the checkpoint when they are asked for.
+    pub fn store_due_outputs(&self) {
+        let due = self.scheduler().take_due_outputs();
+        for source in due {
+            if let Err(e) = source.store(self.store.as_ref()) {
+                tracing::error!(
+                    "job {}: cannot store its outputs: {e:#}; they are drawn again when asked for",
+                    source.job()
+                );
+            }
+        }
     }
 
     /// Runs `f` on a blocking thread.
