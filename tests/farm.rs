@@ -174,6 +174,40 @@ fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
     assert!(fast * 4 < paper, "fast {fast} photons, paper {paper}");
 }
 
+/// Issue 19: a job whose refinement screens by differential renders, across processes: the
+/// coordinator sends each differential render whole with the job's target (once per worker),
+/// the workers score its changes where the counts are, and a coordinator killed during the
+/// search resumes from the stored change scores; the job ends exactly as in one process.
+#[test]
+fn a_differential_job_through_a_restart_ends_as_in_one_process() {
+    let mut farm = Farm::start(&["--task-seconds", "0.05"]);
+    farm.start_worker("a", &[]);
+    farm.start_worker("b", &[]);
+    farm.wait_workers(&["a", "b"]);
+    let id = farm.submit_file("job/differential.toml");
+    let before = farm.wait_for(&id, "half the requests", |s| {
+        s["state"] == "searching" && fraction(s) > 0.5
+    });
+    farm.kill_coordinator();
+    farm.start_coordinator();
+    let after = farm.status(&id);
+    assert!(
+        after["renders_done"].as_u64() >= before["renders_done"].as_u64(),
+        "before the kill: {before:#}\nafter the restart: {after:#}"
+    );
+    farm.wait_finished(&id);
+    farm.assert_result_of(Search::Differential, &id, true);
+    let (report, _) = farm.result(&id);
+    assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
+    let reweighted: u64 = report["refinement"]
+        .as_array()
+        .expect("the sweeps are reported")
+        .iter()
+        .map(|s| s["reweighted"].as_u64().unwrap())
+        .sum();
+    assert!(reweighted > 0, "{report:#}");
+}
+
 #[test]
 fn a_task_of_a_worker_killed_mid_task_is_rendered_by_another() {
     let mut farm = Farm::start(&["--task-seconds", "0.05", "--heartbeat-ms", "300"]);

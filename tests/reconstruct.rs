@@ -390,22 +390,15 @@ fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
     let farm = reconstruct(dir.path(), THREE, "like-farm", &with_data);
     let npy = |o: &str| std::fs::read(dir.path().join(o).join("materials.npy")).unwrap();
     assert_eq!(npy("like"), npy("like-farm"));
-    let strip = |mut v: serde_json::Value| {
-        let o = v.as_object_mut().unwrap();
-        o.remove("wall_seconds");
-        o.remove("photons_simulated");
-        // The two runs read the scene from files of different names.
-        o["configuration"]["scene"] = serde_json::Value::Null;
-        v
-    };
-    assert_eq!(strip(report), strip(farm));
+    assert_eq!(same_run(report), same_run(farm));
 }
 
-/// Differential screening (issue 19's first part, in process): the refinement scores its
-/// changes from differential renders of the current map, finds the scene, and a seed fixes the
-/// result; the farm, whose workers return counts only, refuses such a job by name.
+/// Differential screening (issue 19): the refinement scores its changes from differential
+/// renders of the current map, finds the scene, and a seed fixes the result; on the farm's
+/// embedded path (`--data`) the worker renders the same chunks and scores the changes where the
+/// counts are, and the job ends with the same map and report, scores included, bit for bit.
 #[test]
-fn differential_refinement_finds_the_scene_and_the_farm_refuses_it_by_name() {
+fn differential_refinement_finds_the_scene_in_process_and_on_the_farm_alike() {
     let dir = tempfile::tempdir().unwrap();
     let args = [
         "--search",
@@ -436,22 +429,9 @@ fn differential_refinement_finds_the_scene_and_the_farm_refuses_it_by_name() {
     let data = dir.path().join("data");
     let mut with_data: Vec<&str> = args.to_vec();
     with_data.extend(["--data", data.to_str().unwrap()]);
-    let scene_path = dir.path().join("farm.toml");
-    std::fs::write(&scene_path, THREE).unwrap();
-    let mut cmd = scatterfarm();
-    cmd.args(["reconstruct", "--scene"])
-        .arg(&scene_path)
-        .args(["--engine", "cpu", "--quiet", "--out"])
-        .arg(dir.path().join("farm"))
-        .args(&with_data);
-    let ran = output(cmd);
-    assert!(!ran.status.success(), "{}", ran.stderr);
-    assert!(
-        ran.stderr
-            .contains("refine_screen = \"differential\" is not served by the farm"),
-        "{}",
-        ran.stderr
-    );
+    let farm = reconstruct(dir.path(), THREE, "diff-farm", &with_data);
+    assert_eq!(npy("diff"), npy("diff-farm"));
+    assert_eq!(same_run(report), same_run(farm));
 }
 
 /// Issue 17: a 100-byte NPY whose header claims a (2³⁰, 2³⁰) float32 array aborted the process
@@ -537,4 +517,14 @@ fn jobs_past_the_cost_limits_are_refused_naming_the_limit() {
         }
         assert!(!dir.path().join("o").exists(), "{file}: output written");
     }
+}
+
+/// A report without what two runs of one reconstruction may differ in: the wall time, the
+/// photons engines ran (a farm re-renders what a restart lost) and the scene's file name.
+fn same_run(mut report: serde_json::Value) -> serde_json::Value {
+    let o = report.as_object_mut().unwrap();
+    o.remove("wall_seconds");
+    o.remove("photons_simulated");
+    o["configuration"]["scene"] = serde_json::Value::Null;
+    report
 }

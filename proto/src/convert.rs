@@ -8,12 +8,14 @@
 //! the protocol encode and check the same way. Engine fingerprints cross the wire through
 //! [`fingerprint_to_proto`] and [`fingerprint_from_proto`].
 
+use crate::differential::{differential_from_proto, differential_to_proto, DifferentialPart};
 use crate::v1;
 use bytes::Bytes;
 use scatterfarm_model::engine::{
     CountMatrix, EngineFingerprint, PhotonRange, RenderBatch, RenderItem, RenderOutput,
 };
 use scatterfarm_model::geometry::{Geometry, GeometryError};
+use scatterfarm_model::likelihood::Target;
 use scatterfarm_model::material::{Material, MaterialError};
 use thiserror::Error;
 
@@ -62,6 +64,12 @@ pub enum ConvertError {
         bins: usize,
         bytes: usize,
     },
+    #[error("differential task: {0}")]
+    Differential(String),
+    #[error("target: {0}")]
+    Target(String),
+    #[error("change scores: {0}")]
+    ChangeScores(String),
     #[error("result {item}: {source}")]
     Result {
         item: usize,
@@ -76,6 +84,9 @@ pub struct RenderTask {
     pub table: Vec<Material>,
     pub items: Vec<RenderItem>,
     pub photons: PhotonRange,
+    /// Present for a differential render (its one item, from photon 0); the job's target
+    /// travels beside it ([`crate::differential::target_from_proto`]).
+    pub differential: Option<DifferentialPart>,
 }
 
 impl RenderTask {
@@ -106,12 +117,14 @@ pub struct TaskLease {
 }
 
 /// The wire task for `task` under `lease`. `geometry_is_job_geometry` says the geometry is the
-/// job's (workers cache it); `send_geometry` is false when the worker already holds it.
+/// job's (workers cache it); `send_geometry` is false when the worker already holds it. A
+/// differential task carries `target` when it is given (the worker does not hold it).
 pub fn task_to_proto(
     lease: TaskLease,
     task: &RenderTask,
     geometry_is_job_geometry: bool,
     send_geometry: bool,
+    target: Option<&Target>,
 ) -> v1::Task {
     v1::Task {
         job_id: lease.job_id,
@@ -124,6 +137,10 @@ pub fn task_to_proto(
         assignments: task.items.iter().map(assignment_to_proto).collect(),
         photon_first: task.photons.first,
         photon_count: task.photons.count,
+        differential: task
+            .differential
+            .as_ref()
+            .map(|d| differential_to_proto(d, target)),
     }
 }
 
@@ -224,11 +241,17 @@ pub fn decode_task(task: &v1::Task, geometry: Geometry) -> Result<RenderTask, Co
             count: photons.count,
         });
     }
+    let differential = task
+        .differential
+        .as_ref()
+        .map(|d| differential_from_proto(d, items.len(), photons.first, pixels, table.len()))
+        .transpose()?;
     Ok(RenderTask {
         geometry,
         table,
         items,
         photons,
+        differential,
     })
 }
 
@@ -389,6 +412,7 @@ mod tests {
             assignments: items.iter().map(assignment_to_proto).collect(),
             photon_first: 10,
             photon_count: 20,
+            differential: None,
         }
     }
 
@@ -452,10 +476,10 @@ mod tests {
             attempt: 1,
             lease_deadline_unix_ms: 0,
         };
-        let wire = task_to_proto(lease.clone(), &r, true, true);
+        let wire = task_to_proto(lease.clone(), &r, true, true, None);
         assert_eq!(wire, task());
         assert_eq!(decode(&wire).unwrap(), r);
-        let cached = task_to_proto(lease, &r, true, false);
+        let cached = task_to_proto(lease, &r, true, false, None);
         assert!(cached.geometry.is_none());
         assert!(cached.geometry_is_job_geometry);
         assert_eq!(decode_task(&cached, geometry()).unwrap(), r);

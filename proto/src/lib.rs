@@ -4,19 +4,21 @@
 //! is `bytes::Bytes`, so large count matrices are not copied on the way through.
 //!
 //! Beside the generated code, [`convert`] holds every conversion between the protocol's messages
-//! and the model's types (both ends encode and check the same way), [`auth`] holds the shared-token check both ends agree on, and
+//! and the model's types (both ends encode and check the same way), [`differential`] the parts
+//! of a differential render (changes, the job's target, the changes' scores), [`auth`] holds the shared-token check both ends agree on, and
 //! [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
 
 pub mod auth;
 pub mod channel;
 pub mod convert;
+pub mod differential;
 
 /// Package `scatterfarm.v1`.
 pub mod v1 {
     tonic::include_proto!("scatterfarm.v1");
 
     /// The protocol version this build speaks.
-    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 1 };
+    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 2 };
 
     /// Messages up to this size are accepted and sent (a default-size count matrix is 5.3 MB;
     /// a task result carries one per assignment).

@@ -52,6 +52,11 @@ impl Farm {
         std::fs::write(root.path().join("job/three.toml"), THREE).unwrap();
         std::fs::write(root.path().join("job/job.toml"), job_toml()).unwrap();
         std::fs::write(root.path().join("job/fast.toml"), job_toml_of(Search::Fast)).unwrap();
+        std::fs::write(
+            root.path().join("job/differential.toml"),
+            job_toml_of(Search::Differential),
+        )
+        .unwrap();
         Farm {
             coordinator: None,
             workers: Vec::new(),

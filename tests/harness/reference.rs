@@ -17,9 +17,11 @@ pub struct Reference {
 pub fn reference_of(search: Search) -> &'static Reference {
     static PAPER: OnceLock<Reference> = OnceLock::new();
     static FAST: OnceLock<Reference> = OnceLock::new();
+    static DIFFERENTIAL: OnceLock<Reference> = OnceLock::new();
     let cell = match search {
         Search::Paper => &PAPER,
         Search::Fast => &FAST,
+        Search::Differential => &DIFFERENTIAL,
     };
     cell.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
@@ -30,6 +32,9 @@ pub fn reference_of(search: Search) -> &'static Reference {
             cmd.arg(format!("--{}", key.replace('_', "-"))).arg(value);
         }
         cmd.args(["--search", search.name()]);
+        for (key, value) in search.keys() {
+            cmd.arg(format!("--{}", key.replace('_', "-"))).arg(value);
+        }
         cmd.args(["--engine", "cpu", "--quiet", "--out", "out"])
             .current_dir(dir.path());
         let ran = run(cmd, dir.path(), Duration::from_secs(300));

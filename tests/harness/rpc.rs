@@ -84,6 +84,7 @@ impl Rpc {
             fingerprint: Some(cpu_fingerprint()),
             photons_per_second: 1e6,
             name: name.to_string(),
+            renders_differentially: true,
         };
         self.worker_call(|mut w| async move { w.register(request).await })
     }
@@ -101,6 +102,7 @@ impl Rpc {
             fingerprint: Some(cpu_fingerprint()),
             photons_per_second,
             name: name.to_string(),
+            renders_differentially: true,
         };
         self.worker_call(|mut w| async move { w.register(request).await })
             .unwrap_or_else(|s| panic!("registration refused: {s:?}"))
@@ -121,6 +123,7 @@ impl Rpc {
         let request = pb::LeaseRequest {
             worker_id: worker.to_string(),
             cached_jobs: Vec::new(),
+            cached_targets: Vec::new(),
         };
         self.worker_call(|mut w| async move { w.lease(request).await })
             .unwrap_or_else(|s| panic!("lease refused: {s:?}"))
@@ -156,6 +159,7 @@ impl Rpc {
             counts,
             scatter_events: 0,
             render_seconds: 0.01,
+            change_scores: Vec::new(),
         };
         self.worker_call(|mut w| async move { w.complete(request).await })
     }

@@ -53,11 +53,13 @@ pub const JOB_KEYS: [(&str, &str); 4] = [
     ("seed", "7"),
 ];
 
-/// Which of the two searches a job runs.
+/// Which search a job runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Search {
     Paper,
     Fast,
+    /// The likelihood search whose refinement screens by differential renders.
+    Differential,
 }
 
 impl Search {
@@ -66,6 +68,15 @@ impl Search {
         match self {
             Search::Paper => "paper",
             Search::Fast => "fast",
+            Search::Differential => "likelihood",
+        }
+    }
+
+    /// The job keys it sets besides [`JOB_KEYS`] and `search`.
+    pub fn keys(self) -> &'static [(&'static str, &'static str)] {
+        match self {
+            Search::Paper | Search::Fast => &[],
+            Search::Differential => &[("refine_screen", "differential"), ("refine_sweeps", "3")],
         }
     }
 }
@@ -84,6 +95,12 @@ pub fn job_toml_of(search: Search) -> String {
         text.push_str(&format!("{key} = {value}\n"));
     }
     text.push_str(&format!("search = \"{}\"\n", search.name()));
+    for (key, value) in search.keys() {
+        let value = value
+            .parse::<f64>()
+            .map_or_else(|_| format!("\"{value}\""), |_| value.to_string());
+        text.push_str(&format!("{key} = {value}\n"));
+    }
     text
 }
 

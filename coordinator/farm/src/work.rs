@@ -4,11 +4,17 @@
 //! start from counts already in hand (racing's first stage), rendering only the photons after
 //! them.
 //!
+//! A differential group (a refinement's screen) is one render with the changes it also
+//! estimates; it goes to one worker whole, which renders it in the job's chunks and returns its
+//! counts with one score per change (the deltas behind them never cross the wire).
+//!
 //! Counts are additive over photon ranges (`[0, a) + [a, n) = [0, n)` per item, bit-exactly), so
 //! a group's sums do not depend on how it was cut, in what order pieces came back, or how often a
 //! piece was leased again.
 
 use scatterfarm_job::plan::SetupKind;
+use scatterfarm_model::differential::{change_is_reweightable, Change};
+use scatterfarm_model::likelihood::{blocks, Deviance};
 use scatterfarm_model::{CountMatrix, Geometry, Material};
 pub use scatterfarm_search::steps::GroupItem;
 use std::collections::VecDeque;
@@ -55,6 +61,10 @@ pub struct RenderGroup {
     sums: Vec<CountMatrix>,
     /// Scattering events reported with the summed pieces.
     pub scatter_events: u64,
+    /// The changes a differential group's one render also estimates; empty for plain groups.
+    pub changes: Vec<Change>,
+    /// A differential group's change scores, once its piece is in.
+    change_scores: Option<Vec<Option<Deviance>>>,
 }
 
 impl RenderGroup {
@@ -80,7 +90,20 @@ impl RenderGroup {
             done: 0,
             sums,
             scatter_events: 0,
+            changes: Vec::new(),
+            change_scores: None,
         }
+    }
+
+    /// The group as a differential render of its one item, estimating `changes` too.
+    pub fn with_changes(mut self, changes: Vec<Change>) -> RenderGroup {
+        self.changes = changes;
+        self
+    }
+
+    /// Whether the group is a differential render.
+    pub fn is_differential(&self) -> bool {
+        !self.changes.is_empty()
     }
 
     /// The group with photons `[0, start)` of every item already summed in `sums` (one
@@ -115,7 +138,12 @@ impl RenderGroup {
         if self.next >= self.photons {
             return None;
         }
-        let count = max_photons.clamp(1, self.photons - self.next);
+        // A differential render goes whole: its worker scores the changes of all its photons.
+        let count = if self.is_differential() {
+            self.photons - self.next
+        } else {
+            max_photons.clamp(1, self.photons - self.next)
+        };
         let piece = Piece {
             task_id: new_task_id(),
             attempt: 1,
@@ -132,8 +160,14 @@ impl RenderGroup {
     }
 
     /// Checks a piece's counts: one matrix per item, each of the group's shape, and no source
-    /// with more exits than photons launched.
-    pub fn check(&self, piece: &Piece, counts: &[CountMatrix]) -> Result<(), String> {
+    /// with more exits than photons launched; and a differential group's change scores.
+    pub fn check(
+        &self,
+        piece: &Piece,
+        counts: &[CountMatrix],
+        change_scores: &[Option<Deviance>],
+    ) -> Result<(), String> {
+        self.check_change_scores(change_scores)?;
         if counts.len() != self.items.len() {
             return Err(format!(
                 "{} count matrices for {} assignments",
@@ -164,8 +198,65 @@ impl RenderGroup {
         Ok(())
     }
 
-    /// Adds a checked piece's counts.
-    pub fn accumulate(&mut self, piece: &Piece, counts: Vec<CountMatrix>, scatter_events: u64) {
+    /// Checks a differential group's change scores: one per change, a score exactly where the
+    /// change can be reweighted, each with the geometry's blocks, every block a deviance's
+    /// (not above 0) and the value their sum. A plain group takes none.
+    fn check_change_scores(&self, scores: &[Option<Deviance>]) -> Result<(), String> {
+        if scores.len() != self.changes.len() {
+            return Err(format!(
+                "{} change scores for {} changes",
+                scores.len(),
+                self.changes.len()
+            ));
+        }
+        let Some(item) = self.items.first().filter(|_| self.is_differential()) else {
+            return Ok(());
+        };
+        let expected = blocks(self.geometry.sources() * self.geometry.bins());
+        for (k, (change, score)) in self.changes.iter().zip(scores).enumerate() {
+            let reweightable = change_is_reweightable(&self.table, &item.item.assignment, change);
+            match score {
+                None if reweightable => {
+                    return Err(format!("change {k} can be reweighted, yet it has no score"))
+                }
+                Some(_) if !reweightable => {
+                    return Err(format!(
+                        "change {k} cannot be reweighted, yet it has a score"
+                    ))
+                }
+                None => {}
+                Some(d) => {
+                    if d.blocks.len() != expected {
+                        return Err(format!(
+                            "change {k}: {} blocks, expected {expected}",
+                            d.blocks.len()
+                        ));
+                    }
+                    let sum: f64 = d.blocks.iter().sum();
+                    if d.blocks.iter().any(|b| *b > 0.0) || sum.to_bits() != d.value.to_bits() {
+                        return Err(format!(
+                            "change {k}: a score of {} that is not the sum of its blocks, or a \
+                             block above 0",
+                            d.value
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Adds a checked piece's counts (and a differential group's change scores).
+    pub fn accumulate(
+        &mut self,
+        piece: &Piece,
+        counts: Vec<CountMatrix>,
+        scatter_events: u64,
+        change_scores: Vec<Option<Deviance>>,
+    ) {
+        if self.is_differential() {
+            self.change_scores = Some(change_scores);
+        }
         if self.sums.is_empty() {
             self.sums = counts;
         } else {
@@ -189,13 +280,18 @@ impl RenderGroup {
         self.done
     }
 
-    /// The summed counts, one per item.
-    pub fn into_sums(self) -> Vec<CountMatrix> {
+    /// The summed counts, one per item, and a differential group's change scores.
+    pub fn into_parts(self) -> (Vec<CountMatrix>, Option<Vec<Option<Deviance>>>) {
         if self.sums.is_empty() {
             let zeros = CountMatrix::zeros(self.geometry.sources(), self.geometry.bins());
-            return vec![zeros; self.items.len()];
+            return (vec![zeros; self.items.len()], self.change_scores);
         }
-        self.sums
+        (self.sums, self.change_scores)
+    }
+
+    /// The summed counts, one per item.
+    pub fn into_sums(self) -> Vec<CountMatrix> {
+        self.into_parts().0
     }
 }
 
@@ -268,7 +364,7 @@ mod tests {
         let all = whole.take(1000, &mut next).unwrap();
         assert_eq!((all.first, all.count), (0, 100));
         let c = render(&whole, &all);
-        whole.accumulate(&all, c, 0);
+        whole.accumulate(&all, c, 0, Vec::new());
         assert!(whole.is_complete());
 
         let mut cut = group(100);
@@ -284,8 +380,8 @@ mod tests {
         assert_eq!((b2.task_id, b2.attempt, b2.first), (b.task_id, 2, b.first));
         for p in [d, a, b2, c2] {
             let counts = render(&cut, &p);
-            cut.check(&p, &counts).unwrap();
-            cut.accumulate(&p, counts, 0);
+            cut.check(&p, &counts, &[]).unwrap();
+            cut.accumulate(&p, counts, 0, Vec::new());
         }
         assert!(cut.is_complete());
         assert_eq!(cut.into_sums(), whole.into_sums());
@@ -301,12 +397,12 @@ mod tests {
         let mut whole = group(100);
         let all = whole.take(1000, &mut next).unwrap();
         let c = render(&whole, &all);
-        whole.accumulate(&all, c, 0);
+        whole.accumulate(&all, c, 0, Vec::new());
 
         let mut first = group(40);
         let p = first.take(1000, &mut next).unwrap();
         let c = render(&first, &p);
-        first.accumulate(&p, c, 0);
+        first.accumulate(&p, c, 0, Vec::new());
         let mut rest = group(100).starting_from(40, first.into_sums());
         assert_eq!(rest.start, 40);
         let p = rest.take(1000, &mut next).unwrap();
@@ -316,7 +412,7 @@ mod tests {
             "only the photons after the prefix"
         );
         let c = render(&rest, &p);
-        rest.accumulate(&p, c, 0);
+        rest.accumulate(&p, c, 0, Vec::new());
         assert!(rest.is_complete());
         assert_eq!(rest.into_sums(), whole.into_sums());
     }
@@ -327,12 +423,12 @@ mod tests {
         let p = g.take(10, &mut || 1).unwrap();
         let mut c = render(&g, &p);
         assert!(g
-            .check(&p, &c[..1])
+            .check(&p, &c[..1], &[])
             .unwrap_err()
             .contains("1 count matrices"));
         c[1].counts[0] += 11;
-        assert!(g.check(&p, &c).unwrap_err().contains("exited"));
+        assert!(g.check(&p, &c, &[]).unwrap_err().contains("exited"));
         let wrong = vec![CountMatrix::zeros(3, 3); 2];
-        assert!(g.check(&p, &wrong).unwrap_err().contains("expected"));
+        assert!(g.check(&p, &wrong, &[]).unwrap_err().contains("expected"));
     }
 }

@@ -35,7 +35,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
     let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
-    let worker = s.register("w".into(), engine.fingerprint(), 2e6);
+    let worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
     let mut handed_out = 0;
     for round in 0.. {
         assert!(round < 100_000, "the job did not end");

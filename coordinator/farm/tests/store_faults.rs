@@ -27,7 +27,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
     let id = s.submit(spec, inputs).unwrap();
     let submitted = store.writes();
     let engine = CpuEngine::new();
-    let mut worker = s.register("w".into(), engine.fingerprint(), 2e6);
+    let mut worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
     let mut failing_rounds = 0;
     let mut paused_seen = false;
     for round in 0.. {
@@ -67,7 +67,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
                         // Time passes: the pause is over. The worker, silent meanwhile, was
                         // forgotten and registers again.
                         s.sweep(Instant::now() + Duration::from_secs(60));
-                        worker = s.register("w".into(), engine.fingerprint(), 2e6);
+                        worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
                     }
                     other => {
                         panic!("the job is {other} with nothing to lease ({reason}): {status:?}")

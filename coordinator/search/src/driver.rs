@@ -13,9 +13,7 @@ use crate::machine::{ChangeScore, Score, Search, Secondary};
 use crate::similarity::{self, Metric, Target};
 use crate::steps::{Next, Steps};
 use anyhow::{Context, Result};
-use scatterfarm_model::{
-    CountMatrix, DifferentialOutput, Engine, Geometry, Material, PhotonRange, RenderItem,
-};
+use scatterfarm_model::{CountMatrix, DifferentialOutput, Engine, Geometry, Material, RenderItem};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -105,29 +103,36 @@ impl Scoring {
     /// The score of a differential render: the rendered map's, with the estimated score of
     /// every change it reweighted (the likelihood only: paired blocks are what compare them).
     pub fn score_differential(&self, output: &DifferentialOutput, photons: u32) -> Result<Score> {
+        let changes = scatterfarm_model::likelihood::change_deviances(
+            &self.target,
+            output,
+            u64::from(photons),
+        )?
+        .into_iter()
+        .map(|d| {
+            d.map(|d| ChangeScore {
+                value: d.value,
+                blocks: d.blocks,
+            })
+        })
+        .collect();
+        self.score_with_changes(&output.counts, photons, changes)
+    }
+
+    /// The score of a differential render whose changes were scored where it was rendered (a
+    /// farm worker): the rendered map's counts scored here, with the changes' scores as given.
+    pub fn score_with_changes(
+        &self,
+        counts: &CountMatrix,
+        photons: u32,
+        changes: Vec<Option<ChangeScore>>,
+    ) -> Result<Score> {
         anyhow::ensure!(
             self.metric == Metric::Deviance && self.secondary.is_none(),
             "differential renders are scored by the likelihood (metric deviance, no tiebreak)"
         );
-        let mut score = self.score(&output.counts, photons)?;
-        let n = u64::from(photons);
-        score.changes = output
-            .deltas
-            .iter()
-            .map(|delta| {
-                delta
-                    .as_ref()
-                    .map(|d| {
-                        likelihood::deviance_reweighted(&self.target, &output.counts, d, n).map(
-                            |dev| ChangeScore {
-                                value: dev.value,
-                                blocks: dev.blocks,
-                            },
-                        )
-                    })
-                    .transpose()
-            })
-            .collect::<Result<_, _>>()?;
+        let mut score = self.score(counts, photons)?;
+        score.changes = changes;
         Ok(score)
     }
 }
@@ -240,8 +245,9 @@ pub fn drive(
     }
 }
 
-/// Renders `item` differentially over photons `[0, photons)`, in chunks of the scoring's
-/// chunk size (their results add up to one render of the whole range).
+/// Renders `item` differentially over photons `[0, photons)`, in chunks of
+/// [`scatterfarm_model::differential::CHUNK_PHOTONS`]
+/// ([`scatterfarm_model::differential::render_in_chunks`], as a farm worker does).
 pub fn render_differential(
     engine: &dyn Engine,
     scoring: &Scoring,
@@ -252,26 +258,17 @@ pub fn render_differential(
     on_photons: &mut dyn FnMut(u64),
 ) -> Result<DifferentialOutput> {
     let sources = scoring.geometry.sources() as u64;
-    let chunk = scoring.chunk.max(1);
-    let mut total: Option<DifferentialOutput> = None;
-    let mut first = 0u32;
-    while first < photons {
-        let count = chunk.min(photons - first);
-        let part = engine
-            .render_differential(
-                scoring.geometry,
-                table,
-                item,
-                PhotonRange { first, count },
-                changes,
-            )
-            .context("a differential render (refine_screen = \"differential\")")?;
-        match total.as_mut() {
-            Some(t) => t.add(&part)?,
-            None => total = Some(part),
-        }
-        on_photons(u64::from(count) * sources);
-        first += count;
-    }
-    total.context("a differential render of no photons")
+    scatterfarm_model::differential::render_in_chunks(
+        engine,
+        scoring.geometry,
+        table,
+        item,
+        scatterfarm_model::differential::PhotonChunks {
+            photons,
+            chunk: scatterfarm_model::differential::CHUNK_PHOTONS,
+        },
+        changes,
+        &mut |count| on_photons(u64::from(count) * sources),
+    )
+    .context("a differential render (refine_screen = \"differential\")")
 }

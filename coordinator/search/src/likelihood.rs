@@ -1,6 +1,7 @@
 //! The likelihood score (`docs/model.md`, "Likelihood"): the Poisson two-sample deviance of a
-//! render's counts against the target's, and paired comparisons of two renders made on the same
-//! photons (common random numbers).
+//! render's counts against the target's ([`scatterfarm_model::likelihood`], where workers score
+//! with it too), and paired comparisons of two renders made on the same photons (common random
+//! numbers).
 //!
 //! Each observation `i` (a source and a bin) holds a target count `t` over `n_t` photons per
 //! source and a render count `c` over `n_c`. Under the hypothesis that both come from one rate,
@@ -17,117 +18,39 @@
 //! spreads every source and bin over all blocks, so a change's signal is shared evenly by the
 //! blocks and their spread measures noise, not where the signal sits.
 
-use crate::similarity::{SimilarityError, Target};
+use crate::similarity::SimilarityError;
+use scatterfarm_model::likelihood::{self as model, LikelihoodError};
+pub use scatterfarm_model::likelihood::{blocks, spread, term, Deviance, Target, MAX_BLOCKS};
 use scatterfarm_model::CountMatrix;
 
-/// The most blocks a score is split into.
-pub const MAX_BLOCKS: usize = 256;
-
-/// The number of blocks for `observations` observations.
-pub fn blocks(observations: usize) -> usize {
-    observations.clamp(1, MAX_BLOCKS)
-}
-
-/// A render's deviance against the target: `value = −Σ D_i`, and the same sum per block.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Deviance {
-    pub value: f64,
-    pub blocks: Vec<f64>,
-}
-
-/// `x ln(x / e)`, 0 at `x = 0`.
-#[inline]
-fn xlogx_over(x: f64, e: f64) -> f64 {
-    if x > 0.0 {
-        x * (x / e).ln()
-    } else {
-        0.0
+impl From<LikelihoodError> for SimilarityError {
+    fn from(e: LikelihoodError) -> SimilarityError {
+        match e {
+            LikelihoodError::Shape { expected, got } => SimilarityError::Shape { expected, got },
+            LikelihoodError::NoPhotons => SimilarityError::NoPhotons,
+        }
     }
 }
 
-/// One observation's deviance: target count `t` over `nt` photons, render count `c` over `nc`.
-#[inline]
-pub fn term(t: f64, nt: f64, c: f64, nc: f64) -> f64 {
-    let sum = t + c;
-    if sum <= 0.0 {
-        return 0.0;
-    }
-    let total = nt + nc;
-    2.0 * (xlogx_over(t, nt * sum / total) + xlogx_over(c, nc * sum / total))
-}
-
-/// The deviance of a render (`counts` over `photons` photons per source) against `target`.
+/// The deviance of a render (`counts` over `photons` photons per source) against `target`
+/// ([`scatterfarm_model::likelihood::deviance`]).
 pub fn deviance(
     target: &Target,
     counts: &CountMatrix,
     photons: u64,
 ) -> Result<Deviance, SimilarityError> {
-    if counts.counts.len() != target.values.len() {
-        return Err(SimilarityError::Shape {
-            expected: target.values.len(),
-            got: counts.counts.len(),
-        });
-    }
-    if photons == 0 || target.photons_per_source == 0 {
-        return Err(SimilarityError::NoPhotons);
-    }
-    Ok(deviance_of(target, photons, |i| {
-        f64::from(counts.counts[i])
-    }))
+    Ok(model::deviance(target, counts, photons)?)
 }
 
-/// The deviance of a change estimated by a differential render: its counts are the rendered
-/// map's `counts` plus `delta` (`Σ (w − 1)` per observation; see
-/// `scatterfarm_model::differential`), fractional and never below 0.
+/// The deviance of a change estimated by a differential render
+/// ([`scatterfarm_model::likelihood::deviance_reweighted`]).
 pub fn deviance_reweighted(
     target: &Target,
     counts: &CountMatrix,
     delta: &[f64],
     photons: u64,
 ) -> Result<Deviance, SimilarityError> {
-    if counts.counts.len() != target.values.len() || delta.len() != counts.counts.len() {
-        return Err(SimilarityError::Shape {
-            expected: target.values.len(),
-            got: delta.len().min(counts.counts.len()),
-        });
-    }
-    if photons == 0 || target.photons_per_source == 0 {
-        return Err(SimilarityError::NoPhotons);
-    }
-    Ok(deviance_of(target, photons, |i| {
-        (f64::from(counts.counts[i]) + delta[i]).max(0.0)
-    }))
-}
-
-/// The deviance of render counts `count(i)` over `photons` per source (shapes checked).
-fn deviance_of(target: &Target, photons: u64, count: impl Fn(usize) -> f64) -> Deviance {
-    let nt = target.photons_per_source as f64;
-    let nc = photons as f64;
-    let n = target.values.len();
-    let b = blocks(n);
-    let mut per_block = vec![0.0; b];
-    for (i, &f) in target.values.iter().enumerate() {
-        // The target's count: its fraction over its photons (a capture's may be fractional).
-        let t = (f64::from(f) * nt).max(0.0);
-        per_block[i % b] -= term(t, nt, count(i), nc);
-    }
-    Deviance {
-        value: per_block.iter().sum(),
-        blocks: per_block,
-    }
-}
-
-/// The standard error of a score from its blocks' spread (`√B` times their standard deviation):
-/// how much another render of the same map on other photons would differ, with the target
-/// fixed. 0 with fewer than two blocks.
-pub fn spread(blocks: &[f64]) -> f64 {
-    if blocks.len() < 2 {
-        return 0.0;
-    }
-    let n = blocks.len() as f64;
-    let mean = blocks.iter().sum::<f64>() / n;
-    let var = blocks.iter().map(|b| (b - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (n * var).sqrt()
+    Ok(model::deviance_reweighted(target, counts, delta, photons)?)
 }
 
 /// The difference `a − b` of two scores split into the same blocks, and its standard error
@@ -151,19 +74,6 @@ mod tests {
     use scatterfarm_engines::CpuEngine;
     use scatterfarm_model::material::builtin_material;
     use scatterfarm_model::{Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
-
-    #[test]
-    fn a_term_is_zero_when_rates_agree_and_grows_as_they_part() {
-        assert_eq!(term(0.0, 100.0, 0.0, 50.0), 0.0);
-        assert!(term(10.0, 100.0, 5.0, 50.0).abs() < 1e-12);
-        let near = term(10.0, 100.0, 6.0, 50.0);
-        let far = term(10.0, 100.0, 12.0, 50.0);
-        assert!(near > 0.0 && far > near, "{near} {far}");
-        // Symmetric in the two samples.
-        assert!((term(3.0, 40.0, 9.0, 70.0) - term(9.0, 70.0, 3.0, 40.0)).abs() < 1e-12);
-        // A count seen on one side only still costs.
-        assert!(term(0.0, 100.0, 4.0, 100.0) > 0.0);
-    }
 
     #[test]
     fn paired_differences_and_their_error() {

@@ -76,13 +76,7 @@ pub enum SimilarityError {
     Percentile(f64),
 }
 
-/// A target observation set: fractions `O[i][j]`, row-major, and the photons behind them.
-#[derive(Debug, Clone)]
-pub struct Target {
-    pub values: Vec<f32>,
-    /// Photons per source of the target (its effective sample size for captures).
-    pub photons_per_source: u64,
-}
+pub use scatterfarm_model::likelihood::Target;
 
 /// A render's fraction in the target's precision.
 #[inline]

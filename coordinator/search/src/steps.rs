@@ -307,8 +307,7 @@ impl Steps {
     }
 
     /// Scores a differential group's render (photons `[0, photons)` of its one item) and
-    /// keeps the score; returns it. The rendered map's counts are those of a plain render of
-    /// it, so its score is kept under the plain identity too.
+    /// keeps the score ([`Steps::keep_differential`]).
     pub fn complete_differential(
         &mut self,
         search: &Search,
@@ -317,12 +316,25 @@ impl Steps {
         item: &GroupItem,
         output: &DifferentialOutput,
     ) -> Result<Vec<NewScore>> {
-        let step = search.pending().first().map(|r| r.index).unwrap_or(0);
         let score = scoring
             .score_differential(output, photons)
             .with_context(|| {
                 format!("scoring a differential render of {photons} photons per source")
             })?;
+        Ok(self.keep_differential(search, photons, item, score))
+    }
+
+    /// Keeps a differential render's score (its changes' scores in it) under the group's
+    /// identity and returns what is new. The rendered map's counts are those of a plain render
+    /// of it, so its score without the changes is kept under the plain identity too.
+    pub fn keep_differential(
+        &mut self,
+        search: &Search,
+        photons: u32,
+        item: &GroupItem,
+        score: Score,
+    ) -> Vec<NewScore> {
+        let step = search.pending().first().map(|r| r.index).unwrap_or(0);
         let plain = self.identity_of(search, &item.item.assignment, item.item.seed, photons);
         let mut base = score.clone();
         base.changes.clear();
@@ -333,7 +345,7 @@ impl Steps {
         }
         self.scores.insert(item.identity, (score.clone(), step));
         new.push((item.identity, score, step));
-        Ok(new)
+        new
     }
 }
 

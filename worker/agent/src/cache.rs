@@ -1,33 +1,71 @@
-//! The geometries of the jobs this worker has rendered for, so their tasks can come without one
-//! (`LeaseRequest.cached_jobs`). Bounded: the least recently used job is forgotten first.
+//! What a worker keeps of the jobs it renders for, so their tasks can come without it: their
+//! geometries ([`GeometryCache`], `LeaseRequest.cached_jobs`) and the targets it scores their
+//! differential renders against ([`TargetCache`], `LeaseRequest.cached_targets`). Bounded: the
+//! least recently used job is forgotten first.
 
 use scatterfarm_model::geometry::Geometry;
+use scatterfarm_model::likelihood::Target;
 use scatterfarm_proto::convert::{geometry_from_proto, ConvertError};
+use scatterfarm_proto::differential::target_from_proto;
 use scatterfarm_proto::v1::Task;
 use std::collections::VecDeque;
+use std::sync::Arc;
 
-/// Job geometries, most recently used last.
+/// Values kept per job, most recently used last; the least recently used goes first.
 #[derive(Debug, Clone)]
-pub(crate) struct GeometryCache {
-    entries: VecDeque<(String, Geometry)>,
+struct PerJob<T> {
+    entries: VecDeque<(String, T)>,
     capacity: usize,
 }
 
-impl GeometryCache {
-    pub const CAPACITY: usize = 64;
-
-    pub fn new(capacity: usize) -> Self {
-        GeometryCache {
+impl<T: Clone> PerJob<T> {
+    fn new(capacity: usize) -> Self {
+        PerJob {
             entries: VecDeque::new(),
             capacity: capacity.max(1),
         }
     }
 
-    /// The jobs to name in a lease request, sorted.
-    pub fn jobs(&self) -> Vec<String> {
+    /// The jobs held, sorted.
+    fn jobs(&self) -> Vec<String> {
         let mut jobs: Vec<String> = self.entries.iter().map(|(j, _)| j.clone()).collect();
         jobs.sort();
         jobs
+    }
+
+    /// The job's value, now the most recently used.
+    fn get(&mut self, job: &str) -> Option<T> {
+        let position = self.entries.iter().position(|(j, _)| j == job)?;
+        let entry = self.entries.remove(position)?;
+        let value = entry.1.clone();
+        self.entries.push_back(entry);
+        Some(value)
+    }
+
+    /// Keeps `value` for `job`, replacing what it had.
+    fn insert(&mut self, job: &str, value: T) {
+        self.entries.retain(|(j, _)| j != job);
+        if self.entries.len() >= self.capacity {
+            self.entries.pop_front();
+        }
+        self.entries.push_back((job.to_string(), value));
+    }
+}
+
+/// Job geometries.
+#[derive(Debug, Clone)]
+pub(crate) struct GeometryCache(PerJob<Geometry>);
+
+impl GeometryCache {
+    pub const CAPACITY: usize = 64;
+
+    pub fn new(capacity: usize) -> Self {
+        GeometryCache(PerJob::new(capacity))
+    }
+
+    /// The jobs to name in a lease request, sorted.
+    pub fn jobs(&self) -> Vec<String> {
+        self.0.jobs()
     }
 
     /// The geometry `task` renders over: its own (cached when it is the job's), else the job's
@@ -36,34 +74,61 @@ impl GeometryCache {
         if let Some(g) = &task.geometry {
             let geometry = geometry_from_proto(g)?;
             if task.geometry_is_job_geometry {
-                self.insert(&task.job_id, geometry);
+                self.0.insert(&task.job_id, geometry);
             }
             return Ok(geometry);
         }
-        let position = self
-            .entries
-            .iter()
-            .position(|(job, _)| *job == task.job_id)
+        self.0
+            .get(&task.job_id)
             .ok_or_else(|| ConvertError::MissingGeometry {
                 job_id: task.job_id.clone(),
-            })?;
-        let entry = self
-            .entries
-            .remove(position)
-            .ok_or_else(|| ConvertError::MissingGeometry {
-                job_id: task.job_id.clone(),
-            })?;
-        let geometry = entry.1;
-        self.entries.push_back(entry);
-        Ok(geometry)
+            })
+    }
+}
+
+/// Job targets (a target is `sources × bins` values: fewer are kept than geometries).
+#[derive(Debug, Clone)]
+pub(crate) struct TargetCache(PerJob<Arc<Target>>);
+
+impl TargetCache {
+    pub const CAPACITY: usize = 8;
+
+    pub fn new(capacity: usize) -> Self {
+        TargetCache(PerJob::new(capacity))
     }
 
-    fn insert(&mut self, job: &str, geometry: Geometry) {
-        self.entries.retain(|(j, _)| j != job);
-        if self.entries.len() >= self.capacity {
-            self.entries.pop_front();
+    /// The jobs to name in a lease request, sorted.
+    pub fn jobs(&self) -> Vec<String> {
+        self.0.jobs()
+    }
+
+    /// The target a differential `task` over `geometry` scores against: the one it carries
+    /// (checked, then kept), else the job's cached one.
+    pub fn resolve(
+        &mut self,
+        task: &Task,
+        geometry: &Geometry,
+    ) -> Result<Arc<Target>, ConvertError> {
+        let observations = geometry.sources() * geometry.bins();
+        if let Some(t) = task.differential.as_ref().and_then(|d| d.target.as_ref()) {
+            let target = Arc::new(target_from_proto(t, observations)?);
+            self.0.insert(&task.job_id, target.clone());
+            return Ok(target);
         }
-        self.entries.push_back((job.to_string(), geometry));
+        let target = self.0.get(&task.job_id).ok_or_else(|| {
+            ConvertError::Target(format!(
+                "the task of job {} came without one and it is not cached",
+                task.job_id
+            ))
+        })?;
+        if target.values.len() != observations {
+            return Err(ConvertError::Target(format!(
+                "the cached target of job {} has {} values, the task's geometry {observations}",
+                task.job_id,
+                target.values.len()
+            )));
+        }
+        Ok(target)
     }
 }
 
@@ -116,5 +181,63 @@ mod tests {
         cache.resolve(&task("a", None, false)).unwrap();
         cache.resolve(&task("c", Some(g), true)).unwrap();
         assert_eq!(cache.jobs(), ["a", "c"]);
+    }
+
+    fn differential_task(job: &str, target: Option<&Target>) -> Task {
+        Task {
+            job_id: job.into(),
+            differential: Some(scatterfarm_proto::v1::Differential {
+                target: target.map(scatterfarm_proto::differential::target_to_proto),
+                ..Default::default()
+            }),
+            ..Task::default()
+        }
+    }
+
+    #[test]
+    fn targets_are_kept_per_job_checked_against_the_geometry_and_forgotten_oldest_first() {
+        let g = Geometry::new(8.0, 4, 8, 1).unwrap();
+        let n = g.sources() * g.bins();
+        let target = |v: f32| Target {
+            values: vec![v; n],
+            photons_per_source: 100,
+        };
+        let mut cache = TargetCache::new(2);
+        assert!(matches!(
+            cache.resolve(&differential_task("a", None), &g),
+            Err(ConvertError::Target(_))
+        ));
+        let a = cache
+            .resolve(&differential_task("a", Some(&target(0.25))), &g)
+            .unwrap();
+        assert_eq!(a.values, target(0.25).values);
+        // Later tasks of the job come without it and get the cached one.
+        let again = cache.resolve(&differential_task("a", None), &g).unwrap();
+        assert_eq!(again.values, a.values);
+        // A target of the wrong length is refused, on the wire and from the cache.
+        let other = Geometry::new(8.0, 4, 16, 1).unwrap();
+        assert!(matches!(
+            cache.resolve(&differential_task("a", None), &other),
+            Err(ConvertError::Target(_))
+        ));
+        assert!(matches!(
+            cache.resolve(&differential_task("b", Some(&target(0.5))), &other),
+            Err(ConvertError::Target(_))
+        ));
+        assert_eq!(cache.jobs(), ["a"]);
+        // A resent target replaces the cached one.
+        let replaced = cache
+            .resolve(&differential_task("a", Some(&target(0.5))), &g)
+            .unwrap();
+        assert_eq!(replaced.values[0], 0.5);
+        cache
+            .resolve(&differential_task("b", Some(&target(0.1))), &g)
+            .unwrap();
+        cache.resolve(&differential_task("a", None), &g).unwrap();
+        cache
+            .resolve(&differential_task("c", Some(&target(0.1))), &g)
+            .unwrap();
+        assert_eq!(cache.jobs(), ["a", "c"]);
+        assert!(cache.resolve(&differential_task("b", None), &g).is_err());
     }
 }

@@ -123,6 +123,7 @@ async fn start(
         fingerprint: Some(fingerprint_to_proto(&fingerprint)),
         photons_per_second,
         name,
+        renders_differentially: engine.renders_differentially(),
     };
     let connector =
         session::Connector::new(config.endpoint, request, fingerprint.key(), stop.clone());

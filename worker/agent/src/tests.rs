@@ -7,6 +7,7 @@ use scatterfarm_model::engine::{
     EngineFingerprint, PhotonRange, RenderBatch, RenderItem, RenderOutput,
 };
 use scatterfarm_model::geometry::Geometry;
+use scatterfarm_model::likelihood::Target;
 use scatterfarm_model::material::Material;
 use scatterfarm_proto::auth::RequireToken;
 use scatterfarm_proto::convert::{
@@ -229,6 +230,7 @@ fn task(job: &str, task_id: u64, with_geometry: bool) -> Task {
         assignments: items().iter().map(assignment_to_proto).collect(),
         photon_first: 100,
         photon_count: 50,
+        differential: None,
     }
 }
 
@@ -343,6 +345,81 @@ async fn renders_tasks_with_cached_geometry_and_returns_the_counts() {
             .collect();
         assert_eq!(counts, expected);
     }
+}
+
+/// A differential task of `job` (the item with an opaque pixel 5, photons `[0, 64)` in chunks
+/// of 16) with two changes: pixel 0 made opaque, and pixel 5 cleared (not reweightable).
+fn differential_task(job: &str, task_id: u64, target: Option<&Target>) -> Task {
+    let mut t = task(job, task_id, true);
+    t.assignments.remove(0);
+    t.photon_first = 0;
+    t.photon_count = 64;
+    let part = scatterfarm_proto::differential::DifferentialPart {
+        changes: vec![
+            scatterfarm_model::Change {
+                pixels: vec![(0, 1)],
+            },
+            scatterfarm_model::Change {
+                pixels: vec![(5, 0)],
+            },
+        ],
+        chunk: 16,
+    };
+    t.differential = Some(scatterfarm_proto::differential::differential_to_proto(
+        &part, target,
+    ));
+    t
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn differential_tasks_are_scored_against_the_target_it_was_sent_once() {
+    let g = geometry();
+    let target = Target {
+        values: vec![0.01; g.sources() * g.bins()],
+        photons_per_source: 1000,
+    };
+    let fake = Fake::with(|s| {
+        s.tasks = [
+            differential_task("e", 3, None),
+            differential_task("d", 1, Some(&target)),
+            differential_task("d", 2, None),
+        ]
+        .into();
+    });
+    let url = serve(fake.clone()).await;
+    let summary = Running::start(config(&url, Some(2)), cpu())
+        .finish(false)
+        .await
+        .unwrap();
+    assert_eq!(summary.tasks_completed, 2);
+    let s = fake.state();
+    assert!(s.registrations[0].renders_differentially);
+    assert!(s.leases[1].cached_targets.is_empty());
+    assert_eq!(s.leases[2].cached_targets, ["d"]);
+    // A task of a job whose target it never got is given back, saying so.
+    assert_eq!(s.releases.len(), 1);
+    assert_eq!(s.releases[0].task_id, 3);
+    assert!(
+        s.releases[0].reason.contains("target"),
+        "{}",
+        s.releases[0].reason
+    );
+    // The same render twice: the same counts and change scores, the second from the cache.
+    assert_eq!(s.completed.len(), 2);
+    assert_eq!(s.completed[0].counts, s.completed[1].counts);
+    assert_eq!(s.completed[0].change_scores, s.completed[1].change_scores);
+    let scores =
+        scatterfarm_proto::differential::change_scores_from_proto(&s.completed[0].change_scores)
+            .unwrap();
+    assert_eq!(scores.len(), 2);
+    assert!(
+        scores[1].is_none(),
+        "clearing an opaque pixel was estimated"
+    );
+    let opaque = scores[0]
+        .as_ref()
+        .expect("an opaque candidate is estimated");
+    assert!(opaque.value.is_finite() && opaque.value < 0.0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -1,12 +1,16 @@
 //! The lease loop: lease a task, render it on a blocking thread, return its counts (or give it
-//! back), until shutdown or `max_tasks`.
+//! back), until shutdown or `max_tasks`. A differential task is rendered in its chunks and its
+//! changes are scored here against the job's target, so one score per change goes back.
 
-use super::cache::GeometryCache;
+use super::cache::{GeometryCache, TargetCache};
 use super::retry::{describe, is_auth_failure, is_transient, within, Backoff, Stop};
 use super::session::{Connector, Session};
 use super::{AgentError, AgentSummary};
+use scatterfarm_model::differential::{render_in_chunks, PhotonChunks};
 use scatterfarm_model::engine::{Engine, RenderOutput};
+use scatterfarm_model::likelihood::{change_deviances, Target};
 use scatterfarm_proto::convert::{decode_task, outputs_to_proto, ConvertError, RenderTask};
+use scatterfarm_proto::differential::change_scores_to_proto;
 use scatterfarm_proto::v1::{self, CompleteRequest, LeaseRequest, ReleaseRequest, Task};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -44,6 +48,13 @@ impl std::fmt::Display for TaskRef {
     }
 }
 
+/// A rendered task, encoded for its Complete.
+struct Encoded {
+    counts: Vec<v1::CountMatrix>,
+    scatter_events: u64,
+    change_scores: Vec<v1::ChangeScore>,
+}
+
 /// What became of a leased task.
 enum Outcome {
     Completed {
@@ -70,6 +81,7 @@ impl Worker {
             return Ok(summary);
         };
         let mut cache = GeometryCache::new(GeometryCache::CAPACITY);
+        let mut targets = TargetCache::new(TargetCache::CAPACITY);
         let mut backoff = Backoff::new();
         let mut failures = Backoff::new();
         loop {
@@ -87,6 +99,7 @@ impl Worker {
             let request = LeaseRequest {
                 worker_id: session.worker_id.clone(),
                 cached_jobs: cache.jobs(),
+                cached_targets: targets.jobs(),
             };
             let task = match within(CALL_TIMEOUT, session.client.lease(request)).await {
                 Ok(response) => {
@@ -140,7 +153,10 @@ impl Worker {
                     continue;
                 }
             };
-            match self.handle(&mut session, &mut cache, task).await? {
+            match self
+                .handle(&mut session, &mut cache, &mut targets, task)
+                .await?
+            {
                 Outcome::Completed { photons } => {
                     summary.tasks_completed += 1;
                     summary.photons += photons;
@@ -166,6 +182,7 @@ impl Worker {
         &mut self,
         session: &mut Session,
         cache: &mut GeometryCache,
+        targets: &mut TargetCache,
         task: Task,
     ) -> Result<Outcome, AgentError> {
         let task_ref = TaskRef {
@@ -174,11 +191,17 @@ impl Worker {
             attempt: task.attempt,
             deadline_unix_ms: task.lease_deadline_unix_ms,
         };
-        let render = match cache
+        let decoded = cache
             .resolve(&task)
             .and_then(|geometry| decode_task(&task, geometry))
-        {
-            Ok(render) => render,
+            .and_then(|render| match render.differential {
+                None => Ok((render, None)),
+                Some(_) => targets
+                    .resolve(&task, &render.geometry)
+                    .map(|t| (render, Some(t))),
+            });
+        let (render, target) = match decoded {
+            Ok(decoded) => decoded,
             Err(e) => {
                 tracing::warn!("cannot render {task_ref}: {e}; giving it back");
                 self.release(session, &task_ref, format!("protocol error: {e}"))
@@ -196,11 +219,12 @@ impl Worker {
             render.geometry.sources()
         );
         let photons = render.photons_launched();
-        let (render, result, seconds) = self.render(render).await;
-        let encoded = result.and_then(|outputs| {
-            outputs_to_proto(&render, &outputs).map_err(|e: ConvertError| e.to_string())
-        });
-        let (counts, scatter_events) = match encoded {
+        let (encoded, seconds) = self.render(render, target).await;
+        let Encoded {
+            counts,
+            scatter_events,
+            change_scores,
+        } = match encoded {
             Ok(encoded) => encoded,
             Err(e) => {
                 tracing::warn!("the engine failed on {task_ref}: {e}; giving it back");
@@ -221,6 +245,7 @@ impl Worker {
             counts,
             scatter_events,
             render_seconds: seconds,
+            change_scores,
         };
         Ok(if self.complete(session, &task_ref, request).await? {
             Outcome::Completed { photons }
@@ -229,23 +254,33 @@ impl Worker {
         })
     }
 
-    /// Runs the engine on a blocking thread (to the end, shutdown or not): the task back, the
-    /// outputs or the error text, and the wall seconds.
+    /// Runs the engine on a blocking thread (to the end, shutdown or not) and encodes what it
+    /// rendered, or the error text; with the wall seconds. A differential task (with the
+    /// job's `target`) is rendered in its chunks and its changes scored there too.
     async fn render(
         &self,
         render: RenderTask,
-    ) -> (Arc<RenderTask>, Result<Vec<RenderOutput>, String>, f64) {
-        let render = Arc::new(render);
+        target: Option<Arc<Target>>,
+    ) -> (Result<Encoded, String>, f64) {
         let engine = self.engine.clone();
-        let job = render.clone();
         let start = Instant::now();
-        let joined = tokio::task::spawn_blocking(move || {
-            engine.render(&job.batch()).map_err(|e| e.to_string())
+        let joined = tokio::task::spawn_blocking(move || match (&render.differential, target) {
+            (Some(part), Some(target)) => render_and_score(engine.as_ref(), &render, part, &target),
+            _ => {
+                let outputs = engine.render(&render.batch()).map_err(|e| e.to_string())?;
+                let (counts, scatter_events) =
+                    outputs_to_proto(&render, &outputs).map_err(|e: ConvertError| e.to_string())?;
+                Ok(Encoded {
+                    counts,
+                    scatter_events,
+                    change_scores: Vec::new(),
+                })
+            }
         })
         .await;
         let seconds = start.elapsed().as_secs_f64();
         let result = joined.unwrap_or_else(|e| Err(format!("the engine panicked: {e}")));
-        (render, result, seconds)
+        (result, seconds)
     }
 
     /// Returns a result: true when the coordinator took it. Transient failures are retried with
@@ -347,6 +382,45 @@ impl Worker {
         }
         Ok(())
     }
+}
+
+/// Renders a differential task in its chunks and scores every change it estimated against
+/// `target`: the rendered map's counts and one score per change.
+fn render_and_score(
+    engine: &dyn Engine,
+    render: &RenderTask,
+    part: &scatterfarm_proto::differential::DifferentialPart,
+    target: &Target,
+) -> Result<Encoded, String> {
+    let item = render
+        .items
+        .first()
+        .ok_or("a differential task without its assignment")?;
+    let output = render_in_chunks(
+        engine,
+        render.geometry,
+        &render.table,
+        item,
+        PhotonChunks {
+            photons: render.photons.count,
+            chunk: part.chunk,
+        },
+        &part.changes,
+        &mut |_| {},
+    )
+    .map_err(|e| e.to_string())?;
+    let scores = change_deviances(target, &output, u64::from(render.photons.count))
+        .map_err(|e| format!("scoring the changes: {e}"))?;
+    let outputs = [RenderOutput {
+        counts: output.counts,
+        scatter_events: output.scatter_events,
+    }];
+    let (counts, scatter_events) = outputs_to_proto(render, &outputs).map_err(|e| e.to_string())?;
+    Ok(Encoded {
+        counts,
+        scatter_events,
+        change_scores: change_scores_to_proto(&scores),
+    })
 }
 
 /// How long to keep retrying a result: until the lease deadline, and at least a little while.

@@ -182,6 +182,12 @@ pub trait Engine: Send + Sync {
     /// Renders every item of the batch; outputs are in item order.
     fn render(&self, batch: &RenderBatch<'_>) -> Result<Vec<RenderOutput>, EngineError>;
 
+    /// Whether [`Engine::render_differential`] is implemented (a worker tells the coordinator,
+    /// which leases differential renders only to such engines).
+    fn renders_differentially(&self) -> bool {
+        false
+    }
+
     /// Renders `item` over photons `photons` of every source and, from the same photons,
     /// estimates every change of it (`docs/model.md`, "Differential renders"). Engines that do
     /// not tally per-pixel paths say so with [`EngineError::Unsupported`].

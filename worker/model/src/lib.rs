@@ -7,12 +7,15 @@
 //! - [`scene`]: scene files, parsed and validated; [`builtin`]: the built-in scenes.
 //! - [`engine`]: the [`Engine`] trait, render batches, count matrices and engine fingerprints.
 //! - [`differential`]: differential renders: the changes one render also estimates, and which
-//!   material changes a photon weight covers.
+//!   material changes a photon weight covers, and the chunked render both ends run.
+//! - [`likelihood`]: the deviance of a render against a target, split into blocks for paired
+//!   comparisons; both the coordinator and a worker score with it.
 
 pub mod builtin;
 pub mod differential;
 pub mod engine;
 pub mod geometry;
+pub mod likelihood;
 pub mod material;
 pub mod scene;
 
@@ -22,5 +25,6 @@ pub use engine::{
     RenderOutput,
 };
 pub use geometry::Geometry;
+pub use likelihood::Target;
 pub use material::{Material, MaterialTable};
 pub use scene::{Scene, SceneError};

@@ -35,6 +35,9 @@ pub enum BenchWhat {
     /// Every parser of untrusted input under generated and mutated inputs: panics, accepted
     /// and refused inputs and peak memory per parser.
     Fuzz(super::bench_fuzz::FuzzArgs),
+    /// What a differential render costs beside a plain render of the same photons: per-pixel
+    /// tallies alone, one change, and a whole sweep's single-pixel changes with their scoring.
+    Tallies(super::bench_tallies::TalliesBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -328,6 +331,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Reconstruct(a) => run_reconstruct(a),
         BenchWhat::Farm(a) => farm::run(a),
         BenchWhat::Fuzz(a) => super::bench_fuzz::run(a),
+        BenchWhat::Tallies(a) => super::bench_tallies::run(a),
     }
 }
 
@@ -497,7 +501,7 @@ fn run_engine(args: EngineBenchArgs) -> Result<()> {
 }
 
 /// Prints the JSON on stdout and, when asked, writes it to `out` as well.
-fn emit(json: &serde_json::Value, out: Option<&std::path::Path>) -> Result<()> {
+pub(super) fn emit(json: &serde_json::Value, out: Option<&std::path::Path>) -> Result<()> {
     let text = serde_json::to_string_pretty(json)?;
     println!("{text}");
     if let Some(out) = out {

@@ -4,6 +4,7 @@
 pub mod adapters;
 pub mod bench;
 pub mod bench_fuzz;
+pub mod bench_tallies;
 pub mod connect;
 pub mod coordinator;
 pub mod demo;

@@ -81,12 +81,6 @@ impl Job {
     /// Validates a submission and stores it. Nothing is stored when it is invalid.
     pub fn submit(id: String, params: JobSpec, inputs: Inputs, store: &dyn Store) -> Result<Job> {
         let plan = Plan::resolve(&params, &inputs)?;
-        anyhow::ensure!(
-            plan.search.config().refine.as_ref().map(|r| r.screen)
-                != Some(scatterfarm_search::refine::Screen::Differential),
-            "{}",
-            planning::DIFFERENTIAL_REFUSAL
-        );
         let record = JobRecord {
             files: inputs.files.keys().cloned().collect(),
             params,
@@ -171,6 +165,11 @@ impl Job {
             paused: None,
             outputs_due: false,
         }
+    }
+
+    /// What the job's search renders are scored against, once its setup is done.
+    pub fn scoring(&self) -> Option<&Arc<Scoring>> {
+        self.scoring.as_ref()
     }
 
     /// Whether the job still needs renders.

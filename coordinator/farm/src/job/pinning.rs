@@ -5,6 +5,7 @@ use super::Job;
 use crate::store::Store;
 use anyhow::Result;
 use scatterfarm_job::spec::JobSpec;
+use scatterfarm_search::refine::Screen;
 use scatterfarm_search::steps::Steps;
 
 /// The pinned fingerprint of a job that opted out of pinning.
@@ -34,6 +35,17 @@ impl Job {
             None | Some(ANY_ENGINE) => true,
             Some(p) => p == fingerprint,
         }
+    }
+
+    /// Whether the job's refinement screens by differential renders, which only engines that
+    /// render differentially can serve (the whole job is pinned to one engine).
+    pub fn needs_differential(&self) -> bool {
+        self.plan
+            .search
+            .config()
+            .refine
+            .as_ref()
+            .is_some_and(|r| r.screen == Screen::Differential)
     }
 
     /// The engine named in reports.

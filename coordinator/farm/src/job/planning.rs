@@ -9,11 +9,6 @@ use anyhow::{Context, Result};
 use scatterfarm_search::identity::identity;
 use scatterfarm_search::steps::{GroupItem, Next};
 
-/// Why the farm takes no job whose refinement screens by differential renders.
-pub const DIFFERENTIAL_REFUSAL: &str = "refine_screen = \"differential\" is not served by the \
-    farm: its workers return counts, not a differential render's estimates; submit the job with \
-    refine_screen = \"direct\", or run it in process (reconstruct without --data)";
-
 impl Job {
     /// Makes sure the job has groups to render if it needs any: the missing setup renders, or
     /// the current step's unscored renders. Steps whose renders are all scored are submitted
@@ -80,10 +75,6 @@ impl Job {
                         self.persist(store)?;
                     }
                     let table = self.checkpoint.search.materials();
-                    anyhow::ensure!(
-                        groups.iter().all(|g| g.changes.is_empty()),
-                        "{DIFFERENTIAL_REFUSAL}"
-                    );
                     for g in groups {
                         let group = RenderGroup::new(
                             new_group_id(),
@@ -92,7 +83,8 @@ impl Job {
                             table.clone(),
                             g.items,
                             g.photons,
-                        );
+                        )
+                        .with_changes(g.changes);
                         self.groups.push(group.starting_from(g.start, g.prefixes));
                     }
                     return Ok(());
@@ -116,7 +108,7 @@ impl Job {
         self.checkpoint.used.scatter_events += group.scatter_events;
         let (id, purpose, photons) = (group.id, group.purpose, group.photons);
         let items = group.items.clone();
-        let sums = group.into_sums();
+        let (sums, change_scores) = group.into_parts();
         match purpose {
             Purpose::Setup(kind) => {
                 if let Some(c) = sums.into_iter().next() {
@@ -127,7 +119,9 @@ impl Job {
                 }
                 Ok(None)
             }
-            Purpose::Search => self.score_later(id, photons, items, sums).map(Some),
+            Purpose::Search => self
+                .score_later(id, photons, items, sums, change_scores)
+                .map(Some),
         }
     }
 }

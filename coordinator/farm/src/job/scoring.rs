@@ -8,10 +8,11 @@
 use super::Job;
 use crate::store::Store;
 use anyhow::{Context, Result};
+use scatterfarm_model::likelihood::Deviance;
 use scatterfarm_model::CountMatrix;
 use scatterfarm_search::driver::Scoring;
 use scatterfarm_search::steps::{score_group, GroupItem};
-use scatterfarm_search::Score;
+use scatterfarm_search::{ChangeScore, Score};
 use std::sync::Arc;
 
 /// A complete search group, to be scored off the lock.
@@ -23,6 +24,8 @@ pub struct ScoreWork {
     photons: u32,
     items: Vec<GroupItem>,
     counts: Vec<CountMatrix>,
+    /// A differential group's change scores, as its worker returned them.
+    changes: Option<Vec<Option<Deviance>>>,
 }
 
 /// A group's scores, to be kept by its job.
@@ -34,12 +37,17 @@ pub struct Scored {
     items: Vec<GroupItem>,
     counts: Vec<CountMatrix>,
     scores: Result<Vec<Score>>,
+    differential: bool,
 }
 
 impl ScoreWork {
     /// Scores the group: the one heavy step of taking a result, run without the lock.
-    pub fn run(self) -> Scored {
-        let scores = score_group(&self.scoring, self.photons, &self.counts);
+    pub fn run(mut self) -> Scored {
+        let differential = self.changes.is_some();
+        let scores = match self.changes.take() {
+            None => score_group(&self.scoring, self.photons, &self.counts),
+            Some(changes) => self.score_differential(changes),
+        };
         Scored {
             job: self.job,
             group: self.group,
@@ -47,7 +55,36 @@ impl ScoreWork {
             items: self.items,
             counts: self.counts,
             scores,
+            differential,
         }
+    }
+
+    /// A differential group's score: its render's counts scored here, with the changes'
+    /// scores its worker made from the same photons.
+    fn score_differential(&self, changes: Vec<Option<Deviance>>) -> Result<Vec<Score>> {
+        let counts = self
+            .counts
+            .first()
+            .context("a differential group without its render")?;
+        let changes = changes
+            .into_iter()
+            .map(|c| {
+                c.map(|d| ChangeScore {
+                    value: d.value,
+                    blocks: d.blocks,
+                })
+            })
+            .collect();
+        let score = self
+            .scoring
+            .score_with_changes(counts, self.photons, changes)
+            .with_context(|| {
+                format!(
+                    "scoring a differential render of {} photons per source",
+                    self.photons
+                )
+            })?;
+        Ok(vec![score])
     }
 }
 
@@ -60,6 +97,7 @@ impl Job {
         photons: u32,
         items: Vec<GroupItem>,
         counts: Vec<CountMatrix>,
+        changes: Option<Vec<Option<Deviance>>>,
     ) -> Result<ScoreWork> {
         let scoring = self
             .scoring
@@ -73,6 +111,7 @@ impl Job {
             photons,
             items,
             counts,
+            changes,
         })
     }
 
@@ -103,13 +142,26 @@ impl Job {
             .steps
             .as_mut()
             .context("a search render completed for a job that is not pinned")?;
-        for (id, score, step) in steps.keep(
-            &self.checkpoint.search,
-            scored.photons,
-            &scored.items,
-            scored.counts,
-            scores,
-        )? {
+        let new = if scored.differential {
+            let item = scored
+                .items
+                .first()
+                .context("a differential group without its render")?;
+            let score = scores
+                .into_iter()
+                .next()
+                .context("a differential group without its score")?;
+            steps.keep_differential(&self.checkpoint.search, scored.photons, item, score)
+        } else {
+            steps.keep(
+                &self.checkpoint.search,
+                scored.photons,
+                &scored.items,
+                scored.counts,
+                scores,
+            )?
+        };
+        for (id, score, step) in new {
             store.put_score(&self.id, &id, score, step)?;
         }
         if self.groups.is_empty() {

@@ -97,10 +97,18 @@ impl Scheduler {
             .workers
             .values()
             .filter(|w| job.accepts(&w.fingerprint_key))
+            .filter(|w| w.renders_differentially || !job.needs_differential())
             .filter(|w| !self.strikes.blocked(&job.id, &w.name))
             .count();
         if matching == 0 {
             return Some(match job.checkpoint.pinned.as_deref() {
+                _ if job.needs_differential() => format!(
+                    "waiting for a worker whose engine renders differentially (the CPU engine){}",
+                    match job.checkpoint.pinned.as_deref() {
+                        Some(p) if p != crate::job::ANY_ENGINE => format!(", with engine {p}"),
+                        _ => String::new(),
+                    }
+                ),
                 Some(p) if p != crate::job::ANY_ENGINE => {
                     format!("waiting for a worker with engine {p}")
                 }

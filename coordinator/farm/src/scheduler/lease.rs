@@ -4,6 +4,9 @@
 use super::sizing::{lease_duration, max_photons, photons_per_launch};
 use super::{unix_ms_after, Refusal, Scheduler, STRIKES};
 use crate::work::Piece;
+use scatterfarm_proto::differential::DifferentialPart;
+use scatterfarm_search::driver::Scoring;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A leased piece.
@@ -28,6 +31,10 @@ pub struct TaskOut {
     pub job_geometry: bool,
     pub table: Vec<scatterfarm_model::Material>,
     pub items: Vec<scatterfarm_model::RenderItem>,
+    /// A differential render's changes and chunk size.
+    pub differential: Option<DifferentialPart>,
+    /// The job's scoring, for a differential render: its target goes to workers without it.
+    pub scoring: Option<Arc<Scoring>>,
 }
 
 impl Scheduler {
@@ -69,6 +76,13 @@ impl Scheduler {
             if !job.is_active() || job.is_paused() {
                 continue;
             }
+            if job.needs_differential() && !worker.renders_differentially {
+                reason = format!(
+                    "job {id} screens by differential renders, which engine {} does not render",
+                    worker.fingerprint_key
+                );
+                continue;
+            }
             if !job.accepts(&worker.fingerprint_key) {
                 reason = format!(
                     "no job for engine {} (job {id} is pinned to {})",
@@ -101,6 +115,7 @@ impl Scheduler {
                 job.on_error(e, store.as_ref());
                 continue;
             }
+            let scoring = job.scoring().cloned();
             let Some(group) = job.groups.iter_mut().find(|g| g.has_work()) else {
                 continue;
             };
@@ -126,6 +141,11 @@ impl Scheduler {
                 job_geometry: group.geometry == job.plan.search_geometry,
                 table: group.table.clone(),
                 items: group.items.iter().map(|i| i.item.clone()).collect(),
+                differential: (!group.changes.is_empty()).then(|| DifferentialPart {
+                    changes: group.changes.clone(),
+                    chunk: scatterfarm_model::differential::CHUNK_PHOTONS,
+                }),
+                scoring: scoring.filter(|_| !group.changes.is_empty()),
             };
             self.leases.insert(
                 piece.task_id,

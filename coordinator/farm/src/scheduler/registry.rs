@@ -15,6 +15,8 @@ pub struct WorkerEntry {
     pub fingerprint_key: String,
     pub photons_per_second: f64,
     pub tasks_completed: u64,
+    /// Whether its engine renders differentially (it is leased differential renders).
+    pub renders_differentially: bool,
 }
 
 /// The weight of a new measurement in a worker's speed (an exponential moving average).
@@ -40,6 +42,7 @@ impl Scheduler {
         name: String,
         fingerprint: EngineFingerprint,
         photons_per_second: f64,
+        renders_differentially: bool,
     ) -> String {
         let id = format!("w{:08x}-{}", self.boot, self.next_worker);
         self.next_worker += 1;
@@ -61,6 +64,7 @@ impl Scheduler {
                     1e5
                 },
                 tasks_completed: 0,
+                renders_differentially,
             },
         );
         self.liveness.add(&id, Instant::now());

@@ -8,6 +8,7 @@ use super::sizing::photons_per_launch;
 use super::{Lease, Refusal, Scheduler, STRIKES};
 use crate::job::scoring::{ScoreWork, Scored};
 use crate::work::RenderGroup;
+use scatterfarm_model::likelihood::Deviance;
 use scatterfarm_model::CountMatrix;
 
 /// What a worker returns for a piece.
@@ -18,6 +19,9 @@ pub struct Rendered {
     pub scatter_events: u64,
     /// The worker's own time for the render, which feeds its measured speed.
     pub render_seconds: f64,
+    /// A differential render's change scores (one per change; none for a plain render), or why
+    /// they could not be decoded.
+    pub change_scores: Result<Vec<Option<Deviance>>, String>,
 }
 
 impl Scheduler {
@@ -74,6 +78,7 @@ impl Scheduler {
             counts,
             scatter_events,
             render_seconds,
+            change_scores,
         } = rendered;
         let refused = |scheduler: &mut Scheduler, r: Refusal| {
             scheduler.counters.results_refused += 1;
@@ -91,9 +96,9 @@ impl Scheduler {
                 None => Err(Refusal::Stale(format!(
                     "task {task}'s renders are no longer needed"
                 ))),
-                Some(group) => match &counts {
-                    Err(e) => Err(Refusal::Invalid(e.clone())),
-                    Ok(c) => group.check(&lease.piece, c).map_err(Refusal::Invalid),
+                Some(group) => match (&counts, &change_scores) {
+                    (Err(e), _) | (_, Err(e)) => Err(Refusal::Invalid(e.clone())),
+                    (Ok(c), Ok(s)) => group.check(&lease.piece, c, s).map_err(Refusal::Invalid),
                 },
             }
         };
@@ -118,6 +123,7 @@ impl Scheduler {
             return refused(self, r);
         }
         let counts = counts.map_err(Refusal::Invalid)?;
+        let change_scores = change_scores.map_err(Refusal::Invalid)?;
         self.leases.remove(&task);
         self.counters.results_accepted += 1;
         let per_launch = job_photons_per_launch(self, job_id, lease.group);
@@ -140,7 +146,7 @@ impl Scheduler {
             )));
         };
         let group = &mut job.groups[pos];
-        group.accumulate(&lease.piece, counts, scatter_events);
+        group.accumulate(&lease.piece, counts, scatter_events, change_scores);
         let photons =
             u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
         job.session_photons += photons;

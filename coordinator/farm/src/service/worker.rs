@@ -7,6 +7,7 @@ use scatterfarm_model::PhotonRange;
 use scatterfarm_proto::convert::{
     fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
 };
+use scatterfarm_proto::differential::change_scores_from_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::worker_service_server::WorkerService;
 use std::sync::Arc;
@@ -17,9 +18,15 @@ use tonic::{Request, Response, Status};
 pub struct WorkerApi(pub Arc<Farm>);
 
 /// The wire task for `t`; the geometry is left out when it is the job's and the worker holds
-/// it (`cached` lists the jobs whose geometry it holds).
-fn task_to_pb(t: TaskOut, cached: &[String]) -> pb::Task {
+/// it (`cached` lists the jobs whose geometry it holds), and a differential task's target when
+/// the worker holds that (`cached_targets`).
+fn task_to_pb(t: TaskOut, cached: &[String], cached_targets: &[String]) -> pb::Task {
     let send_geometry = !(t.job_geometry && cached.contains(&t.job));
+    let scoring = t.scoring.clone();
+    let target = scoring
+        .as_deref()
+        .filter(|_| !cached_targets.contains(&t.job))
+        .map(|s| &s.target);
     let lease = TaskLease {
         job_id: t.job,
         task_id: t.piece.task_id,
@@ -34,8 +41,9 @@ fn task_to_pb(t: TaskOut, cached: &[String]) -> pb::Task {
             first: t.piece.first,
             count: t.piece.count,
         },
+        differential: t.differential,
     };
-    task_to_proto(lease, &task, t.job_geometry, send_geometry)
+    task_to_proto(lease, &task, t.job_geometry, send_geometry, target)
 }
 
 #[tonic::async_trait]
@@ -65,8 +73,12 @@ impl WorkerService for WorkerApi {
                 if scheduler.draining {
                     return Err(Status::unavailable("the coordinator is draining"));
                 }
-                let id =
-                    scheduler.register(r.name, fingerprint_from_proto(f), r.photons_per_second);
+                let id = scheduler.register(
+                    r.name,
+                    fingerprint_from_proto(f),
+                    r.photons_per_second,
+                    r.renders_differentially,
+                );
                 Ok((id, scheduler.settings.heartbeat.as_millis() as u32))
             })
             .await??;
@@ -102,7 +114,7 @@ impl WorkerService for WorkerApi {
             match outcome {
                 Ok(task) => {
                     return Ok(Response::new(pb::LeaseResponse {
-                        task: Some(task_to_pb(task, &r.cached_jobs)),
+                        task: Some(task_to_pb(task, &r.cached_jobs, &r.cached_targets)),
                         retry_after_ms: 0,
                         reason: String::new(),
                     }))
@@ -129,6 +141,7 @@ impl WorkerService for WorkerApi {
         // A result is contact too: its worker is alive, however long the upload took.
         self.0.liveness.touch(&r.worker_id, Instant::now());
         let counts = results_from_proto(&r.counts).map_err(|e| e.to_string());
+        let change_scores = change_scores_from_proto(&r.change_scores).map_err(|e| e.to_string());
         let farm = self.0.clone();
         // Off the async threads: the lock to sum the result, then, without it, the scoring of
         // a group it completed, then the lock again to keep the scores. Heartbeats and leases
@@ -143,6 +156,7 @@ impl WorkerService for WorkerApi {
                     counts,
                     scatter_events: r.scatter_events,
                     render_seconds: r.render_seconds,
+                    change_scores,
                 },
             )?;
             if let Some(work) = work {
@@ -202,6 +216,7 @@ mod tests {
                 fingerprint: Some(fingerprint()),
                 photons_per_second: 1e6,
                 name: "w".into(),
+                renders_differentially: false,
             }))
             .await
             .unwrap()

@@ -5,6 +5,8 @@ use scatterfarm_coordinator::scheduler::{Rendered, TaskOut};
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
+use scatterfarm_model::differential::{render_in_chunks, PhotonChunks};
+use scatterfarm_model::likelihood::change_deviances;
 use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -32,8 +34,36 @@ pub fn job() -> (JobSpec, Inputs) {
     (spec, inputs)
 }
 
-/// `task` rendered by `engine`, as a worker returns it.
+/// `task` rendered by `engine`, as a worker returns it: a differential task in its chunks, its
+/// changes scored against the job's target.
 pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
+    if let Some(part) = &task.differential {
+        let scoring = task
+            .scoring
+            .as_ref()
+            .expect("a differential task's scoring");
+        let output = render_in_chunks(
+            engine,
+            task.geometry,
+            &task.table,
+            &task.items[0],
+            PhotonChunks {
+                photons: task.piece.count,
+                chunk: part.chunk,
+            },
+            &part.changes,
+            &mut |_| {},
+        )
+        .unwrap();
+        let scores =
+            change_deviances(&scoring.target, &output, u64::from(task.piece.count)).unwrap();
+        return Rendered {
+            counts: Ok(vec![output.counts]),
+            scatter_events: output.scatter_events,
+            render_seconds: 0.01,
+            change_scores: Ok(scores),
+        };
+    }
     let batch = RenderBatch {
         geometry: task.geometry,
         table: &task.table,
@@ -53,5 +83,6 @@ pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
         counts: Ok(counts),
         scatter_events: 0,
         render_seconds: 0.01,
+        change_scores: Ok(Vec::new()),
     }
 }

@@ -110,6 +110,10 @@ impl Engine for CpuEngine {
         })
     }
 
+    fn renders_differentially(&self) -> bool {
+        true
+    }
+
     fn render_differential(
         &self,
         geometry: Geometry,

@@ -161,6 +161,7 @@ pub(super) async fn replay_worker(
     let fingerprint = engine.fingerprint().tagged("replay");
     let registered = client
         .register(pb::RegisterRequest {
+            renders_differentially: false,
             protocol: Some(pb::PROTOCOL),
             fingerprint: Some(scatterfarm_proto::convert::fingerprint_to_proto(
                 &fingerprint,
@@ -193,6 +194,7 @@ pub(super) async fn replay_worker(
         let t0 = Instant::now();
         let response = client
             .lease(pb::LeaseRequest {
+                cached_targets: Vec::new(),
                 worker_id: worker_id.clone(),
                 cached_jobs: Vec::new(),
             })
@@ -215,6 +217,7 @@ pub(super) async fn replay_worker(
         let t1 = Instant::now();
         let outcome = client
             .complete(pb::CompleteRequest {
+                change_scores: Vec::new(),
                 worker_id: worker_id.clone(),
                 job_id: task.job_id.clone(),
                 task_id: task.task_id,

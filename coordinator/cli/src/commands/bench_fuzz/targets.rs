@@ -9,9 +9,9 @@ use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::observation::{self, Sidecar};
 use scatterfarm_job::plan::{parse_bounds, Plan};
 use scatterfarm_job::spec::JobSpec;
-use scatterfarm_model::{CountMatrix, Geometry, Material, RenderItem, Scene};
-use scatterfarm_proto::convert;
+use scatterfarm_model::{likelihood, Change, CountMatrix, Geometry, Material, RenderItem, Scene};
 use scatterfarm_proto::v1;
+use scatterfarm_proto::{convert, differential};
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -289,7 +289,33 @@ fn task_seed() -> v1::Task {
         assignments: items.iter().map(convert::assignment_to_proto).collect(),
         photon_first: 10,
         photon_count: 20,
+        differential: None,
     }
+}
+
+/// The seed task made a differential one: its first assignment from photon 0, two changes,
+/// and the job's target.
+fn differential_seed() -> v1::Task {
+    let mut task = task_seed();
+    task.assignments.truncate(1);
+    task.photon_first = 0;
+    let part = differential::DifferentialPart {
+        changes: vec![
+            Change {
+                pixels: vec![(0, 1)],
+            },
+            Change {
+                pixels: vec![(1, 0), (2, 0)],
+            },
+        ],
+        chunk: 8,
+    };
+    let target = likelihood::Target {
+        values: (0..16).map(|i| i as f32 / 32.0).collect(),
+        photons_per_source: 1000,
+    };
+    task.differential = Some(differential::differential_to_proto(&part, Some(&target)));
+    task
 }
 
 fn complete_seed(sources: u32) -> v1::CompleteRequest {
@@ -306,6 +332,13 @@ fn complete_seed(sources: u32) -> v1::CompleteRequest {
         counts: vec![convert::counts_to_proto(&m), convert::counts_to_proto(&m)],
         scatter_events: 99,
         render_seconds: 0.5,
+        change_scores: differential::change_scores_to_proto(&[
+            None,
+            Some(likelihood::Deviance {
+                value: -3.0,
+                blocks: vec![-1.0, -2.0],
+            }),
+        ]),
     }
 }
 
@@ -316,12 +349,21 @@ fn run_task(input: &[Vec<u8>]) -> bool {
                 Some(g) => convert::geometry_from_proto(g),
                 None => Ok(Geometry::default()),
             };
-            geometry.is_ok_and(|g| convert::decode_task(&task, g).is_ok())
+            let target_ok = match task.differential.as_ref().and_then(|d| d.target.as_ref()) {
+                Some(t) => geometry.as_ref().is_ok_and(|g| {
+                    differential::target_from_proto(t, g.sources() * g.bins()).is_ok()
+                }),
+                None => true,
+            };
+            geometry.is_ok_and(|g| convert::decode_task(&task, g).is_ok()) && target_ok
         }
         Err(_) => false,
     };
     let result_ok = match v1::CompleteRequest::decode(&input[1][..]) {
-        Ok(r) => convert::results_from_proto(&r.counts).is_ok(),
+        Ok(r) => {
+            convert::results_from_proto(&r.counts).is_ok()
+                && differential::change_scores_from_proto(&r.change_scores).is_ok()
+        }
         Err(_) => false,
     };
     task_ok && result_ok
@@ -329,9 +371,13 @@ fn run_task(input: &[Vec<u8>]) -> bool {
 
 /// A structure-aware task and result: fields set to values worth trying.
 fn generate_task(m: &mut Mutator) -> Vec<Vec<u8>> {
-    let mut task = task_seed();
+    let mut task = if m.chance(2) {
+        differential_seed()
+    } else {
+        task_seed()
+    };
     for _ in 0..1 + m.below(3) {
-        match m.below(9) {
+        match m.below(12) {
             0 => {
                 if let Some(g) = task.geometry.as_mut() {
                     g.grid = m.number() as u32;
@@ -370,6 +416,35 @@ fn generate_task(m: &mut Mutator) -> Vec<Vec<u8>> {
                 }
             }
             7 => task.table.clear(),
+            8 => {
+                let (pixel, material) = (m.number() as u32, m.number() as u32);
+                if let Some(c) = task
+                    .differential
+                    .as_mut()
+                    .and_then(|d| d.changes.first_mut())
+                {
+                    c.pixels.push(pixel);
+                    if m.chance(2) {
+                        c.materials.push(material);
+                    }
+                }
+            }
+            9 => {
+                let (chunk, photons) = (m.number(), m.number());
+                if let Some(d) = task.differential.as_mut() {
+                    d.chunk_photons = chunk as u32;
+                    if let Some(t) = d.target.as_mut() {
+                        t.photons_per_source = photons;
+                    }
+                }
+            }
+            10 => {
+                let n = m.below(80);
+                let bytes: Vec<u8> = (0..n).map(|_| m.u64() as u8).collect();
+                if let Some(t) = task.differential.as_mut().and_then(|d| d.target.as_mut()) {
+                    t.values_le_f32 = bytes.into();
+                }
+            }
             _ => task.assignments.clear(),
         }
     }
@@ -380,6 +455,16 @@ fn generate_task(m: &mut Mutator) -> Vec<Vec<u8>> {
         if let Some(c) = result.counts.get_mut(i) {
             c.sources = sources;
             c.bins = bins;
+        }
+    }
+    if m.chance(2) {
+        let i = m.below(result.change_scores.len());
+        let value = *m.pick(&[f64::NAN, f64::INFINITY, -1.0, 0.0]);
+        let blocks = m.below(300);
+        if let Some(s) = result.change_scores.get_mut(i) {
+            s.value = value;
+            s.blocks = vec![value; blocks];
+            s.estimated = m.chance(2);
         }
     }
     vec![task.encode_to_vec(), result.encode_to_vec()]
