@@ -4,8 +4,9 @@
 //! is `bytes::Bytes`, so large count matrices are not copied on the way through.
 //!
 //! Beside the generated code, [`convert`] holds every conversion between the protocol's messages
-//! and the model's types (both ends encode and check the same way), [`differential`] the parts
-//! of a differential render (changes, the job's target, the changes' scores), [`auth`] holds the shared-token check both ends agree on, and
+//! and the model's types (both ends encode and check the same way), [`differential`] those of a
+//! differential render's parts (changes, the job's target, the changes' scores), [`auth`] the
+//! shared-token check both ends agree on, [`channel`] the client channel, and
 //! [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
 
 pub mod auth;

@@ -266,7 +266,8 @@ impl Worker {
         let start = Instant::now();
         let joined = tokio::task::spawn_blocking(move || match (&render.differential, target) {
             (Some(part), Some(target)) => render_and_score(engine.as_ref(), &render, part, &target),
-            _ => {
+            (Some(_), None) => Err("a differential task without the job's target".to_string()),
+            (None, _) => {
                 let outputs = engine.render(&render.batch()).map_err(|e| e.to_string())?;
                 let (counts, scatter_events) =
                     outputs_to_proto(&render, &outputs).map_err(|e: ConvertError| e.to_string())?;

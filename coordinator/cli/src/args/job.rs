@@ -145,8 +145,9 @@ pub struct JobArgs {
     #[arg(long, value_name = "BOOL")]
     pub refine_moves: Option<bool>,
     /// How a refinement sweep scores its changes: `direct` renders each changed map;
-    /// `differential` estimates them all from one render of the current map (CPU engine, in
-    /// process), rendering directly only the changes it cannot reweight.
+    /// `differential` estimates them all from one render of the current map (CPU engine; on
+    /// the farm, CPU workers render and score them), rendering directly only the changes it
+    /// cannot reweight.
     #[arg(long, value_name = "HOW", value_parser = choice::<scatterfarm_search::refine::Screen>())]
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
     /// How many times refinement may double its sweep and confirmation photons where it would

@@ -210,6 +210,11 @@ pub struct QualityRow {
     pub wrong_pixels: Option<usize>,
     pub wrong_told: Option<usize>,
     pub wrong_untold: Option<usize>,
+    /// The refinement's sweeps, the changes they tried, and of those the ones a differential
+    /// render estimated (each would be a render of its own with direct screening).
+    pub sweeps: usize,
+    pub changes_tried: u64,
+    pub changes_reweighted: u64,
 }
 
 /// A scene's rows averaged over the seeds.
@@ -407,6 +412,13 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 wrong_pixels: neighbours.map(|n| n.wrong.len()),
                 wrong_told: neighbours.map(|n| n.wrong_resolved()),
                 wrong_untold: neighbours.map(|n| n.wrong_unresolved()),
+                sweeps: report.refinement.len(),
+                changes_tried: report.refinement.iter().map(|s| u64::from(s.tried)).sum(),
+                changes_reweighted: report
+                    .refinement
+                    .iter()
+                    .map(|s| u64::from(s.reweighted))
+                    .sum(),
             };
             eprintln!(
                 "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1} {:>12}",

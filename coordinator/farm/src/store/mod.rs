@@ -15,7 +15,7 @@ pub mod score_codec;
 
 pub use disk::SledStore;
 pub use memory::MemoryStore;
-pub use score_codec::decode_score;
+pub use score_codec::{decode_score, encode_score};
 
 use scatterfarm_search::Score;
 use std::collections::BTreeMap;

@@ -4,7 +4,7 @@
 use super::mutate::Mutator;
 use prost::Message;
 use scatterfarm_coordinator::job::Job;
-use scatterfarm_coordinator::store::{decode_score, MemoryStore, Store};
+use scatterfarm_coordinator::store::{decode_score, encode_score, MemoryStore, Store};
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::observation::{self, Sidecar};
 use scatterfarm_job::plan::{parse_bounds, Plan};
@@ -242,8 +242,26 @@ fn record_seeds() -> Vec<Vec<Vec<u8>>> {
         for w in [0.5f64.to_bits(), 3, 0.25f64.to_bits()] {
             score.extend_from_slice(&w.to_le_bytes());
         }
+        // A differential render's score: blocks, and its changes' scores (one not estimated).
+        let differential = encode_score(
+            &scatterfarm_search::Score {
+                value: -3.0,
+                std_error: 0.5,
+                secondary: None,
+                blocks: vec![-1.0, -2.0],
+                changes: vec![
+                    Some(scatterfarm_search::ChangeScore {
+                        value: -4.0,
+                        blocks: vec![-1.5, -2.5],
+                    }),
+                    None,
+                ],
+            },
+            3,
+        );
         if let (Some(record), Some(progress)) = (record, progress) {
-            seeds.push(vec![record, progress, score]);
+            seeds.push(vec![record.clone(), progress.clone(), score]);
+            seeds.push(vec![record, progress, differential]);
         }
     }
     seeds
