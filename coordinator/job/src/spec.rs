@@ -122,7 +122,8 @@ pub struct JobSpec {
     /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
     pub refine_moves: Option<bool>,
     /// How a refinement sweep scores its changes: `direct` (a render of each) or
-    /// `differential` (one differential render of the current map; in process only).
+    /// `differential` (one differential render of the current map; CPU engine, in process and
+    /// on the farm).
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
     /// How many times refinement may double its photons where it would otherwise end
     /// (likelihood: 2).

@@ -9,9 +9,11 @@ use clap::Args;
 use scatterfarm_coordinator::scheduler::Settings;
 use scatterfarm_coordinator::server::{self, ServerConfig};
 use scatterfarm_job::inputs::Inputs;
+use scatterfarm_job::options::SearchMode;
 use scatterfarm_job::report::Report;
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::channel::Endpoint;
+use scatterfarm_search::refine::Screen;
 use scatterfarm_worker::{self as agent, AgentConfig};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -20,6 +22,12 @@ use std::time::Duration;
 
 #[derive(Debug, Clone, Args)]
 pub struct DemoArgs {
+    /// The built-in scene (or scene file) to reconstruct. `demo8` (8×8) runs the fast search
+    /// at a small budget (under a minute); any other runs the likelihood search with
+    /// differential screening at 32 positions × 5 directions and 200 000 target photons per
+    /// source (`fig7c`: a few minutes on 2 CPU cores).
+    #[arg(long, default_value = "fig7c")]
+    pub scene: String,
     /// The coordinator's data folder (run again with the same folder to resume).
     #[arg(long, default_value = "scatterfarm-demo/data")]
     pub data: PathBuf,
@@ -33,15 +41,40 @@ pub struct DemoArgs {
     pub http: SocketAddr,
 }
 
-/// The demo's job: the 8×8 built-in scene with the default (fast) search, at a budget two CPU
-/// cores finish in under a minute and at which it finds the truth (seed 1: every pixel; 8
-/// iterations and 2 permutations, the paper search's demo budget, leave it at 93.8 %).
-pub fn demo_params() -> JobSpec {
+/// The demo's job for `scene`.
+///
+/// - `demo8`: the 8×8 built-in scene with the fast search, at a budget two CPU cores finish in
+///   under a minute and at which it finds the truth (seed 1: every pixel; 8 iterations and 2
+///   permutations, the paper search's demo budget, leave it at 93.8 %).
+/// - any other scene: the quality bench's likelihood search with differential screening
+///   (`tests/bench/searches.sh`, `likelihood-differential-direct8`) at the bench's geometry,
+///   32 positions × 5 directions and 200 000 target photons per source. On fig7c (16×16, a
+///   transmissive background) it finds every pixel (`tests/bench/quality`).
+pub fn demo_params(scene: &str) -> JobSpec {
+    if scene == "demo8" {
+        return JobSpec {
+            scene: Some("demo8".into()),
+            permutations: 3,
+            iterations: 32,
+            name: Some("demo".into()),
+            ..JobSpec::default()
+        };
+    }
     JobSpec {
-        scene: Some("demo8".into()),
-        permutations: 3,
-        iterations: 32,
-        name: Some("demo".into()),
+        scene: Some(scene.into()),
+        permutations: 1,
+        iterations: 8,
+        photons_per_iteration: 512,
+        positions: Some(32),
+        directions: Some(5),
+        target_photons: Some(200_000),
+        search: SearchMode::Likelihood,
+        refine_screen: Some(Screen::Differential),
+        refine_photons: Some(102_400),
+        refine_confirm_photons: Some(204_800),
+        refine_direct_photons: Some(12_800),
+        refine_sweeps: Some(24),
+        name: Some(format!("demo {scene}")),
         ..JobSpec::default()
     }
 }
@@ -82,7 +115,15 @@ pub fn run_embedded(
 ) -> Result<Report> {
     let inputs = Inputs::gather(params, Path::new("."))?;
     scatterfarm_job::plan::Plan::resolve(params, &inputs)?;
-    let engine: Arc<dyn scatterfarm_model::Engine> = Arc::from(engine.open()?);
+    let mut engine: Arc<dyn scatterfarm_model::Engine> = Arc::from(engine.open()?);
+    if params.refine_screen == Some(Screen::Differential) && !engine.renders_differentially() {
+        // The job's differential renders go only to engines that render them.
+        eprintln!(
+            "engine {} does not render differentially; the embedded worker runs the CPU engine",
+            engine.fingerprint().key()
+        );
+        engine = Arc::new(scatterfarm_engines::cpu::CpuEngine::new());
+    }
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -177,10 +218,12 @@ pub fn run_embedded(
 }
 
 pub fn run(args: DemoArgs) -> Result<()> {
-    let params = demo_params();
+    let params = demo_params(&args.scene);
     let engine = args.engine.clone();
     eprintln!(
-        "scatterfarm demo: reconstructing the built-in 8×8 scene `demo8` with a coordinator and a worker in this process (state in {})",
+        "scatterfarm demo: reconstructing `{}` with the {} search, a coordinator and a worker in this process (state in {})",
+        args.scene,
+        params.search.name(),
         args.data.display()
     );
     let report = run_embedded(
@@ -200,4 +243,34 @@ pub fn run(args: DemoArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scatterfarm_job::plan::Plan;
+
+    /// The default demo is a 16×16 scene at the bench's geometry, refined by differential
+    /// renders; `demo8` keeps its small fast search. Both resolve into plans.
+    #[test]
+    fn the_demos_resolve_into_the_searches_they_describe() {
+        let fig7c = demo_params("fig7c");
+        let inputs = Inputs::gather(&fig7c, Path::new(".")).unwrap();
+        let plan = Plan::resolve(&fig7c, &inputs).unwrap();
+        assert_eq!(plan.search_geometry.grid, 16);
+        assert_eq!(plan.search_geometry.sources(), 32 * 5);
+        let refine = plan
+            .search
+            .config()
+            .refine
+            .clone()
+            .expect("a refinement stage");
+        assert_eq!(refine.screen, Screen::Differential);
+        assert_eq!(refine.direct_photons, Some(12_800));
+        let demo8 = demo_params("demo8");
+        let inputs = Inputs::gather(&demo8, Path::new(".")).unwrap();
+        let plan = Plan::resolve(&demo8, &inputs).unwrap();
+        assert_eq!(plan.search_geometry.grid, 8);
+        assert!(plan.search.config().refine.is_none());
+    }
 }
