@@ -332,7 +332,7 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
     if s.jobs.is_empty() {
         h.push_str("<p id=\"no-jobs\">No jobs.</p>");
     } else {
-        h.push_str("<table id=\"jobs\"><tr><th>job</th><th>name</th><th>state</th><th>progress</th><th>level</th><th>best similarity</th><th>ETA</th><th>workers busy</th><th>current best</th><th>convergence</th></tr>");
+        h.push_str("<table id=\"jobs\"><tr><th>job</th><th>name</th><th>state</th><th>progress</th><th>stage</th><th>best similarity</th><th>ETA</th><th>workers busy</th><th>current best</th><th>convergence</th></tr>");
         for j in &s.jobs {
             let share = j.renders_done as f64 / j.renders_total.max(1) as f64;
             let map = if j.best_similarity.is_finite() {
@@ -354,7 +354,7 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
             h.push_str(&format!(
                 "<tr class=\"job\" data-job=\"{id}\"><td>{id}</td><td>{name}</td><td>{state}<br><small>{msg}</small></td>\
                  <td><div class=\"bar\"><div style=\"width:{pct:.1}%\"></div></div>{done}/{total} renders ({pct:.1} %)</td>\
-                 <td>{level}/{levels}</td><td>{best}</td><td>{eta}</td><td>{busy}</td><td>{map}</td><td>{curve}</td></tr>",
+                 <td>{stage}</td><td>{best}</td><td>{eta}</td><td>{busy}</td><td>{map}</td><td>{curve}</td></tr>",
                 id = esc(&j.job_id),
                 name = esc(&j.name),
                 state = state_name(j.state),
@@ -362,8 +362,7 @@ fn page(s: &Snapshot, rates: (f64, f64)) -> String {
                 pct = share * 100.0,
                 done = j.renders_done,
                 total = j.renders_total,
-                level = j.level,
-                levels = j.levels.saturating_sub(1),
+                stage = esc(&crate::status::progress_of(j).stage()),
                 best = if j.best_similarity.is_finite() {
                     format!("{:.4}", j.best_similarity)
                 } else {

@@ -4,6 +4,7 @@
 use crate::job::{Job, JobState};
 use crate::scheduler::{Refusal, Scheduler};
 use scatterfarm_proto::v1 as pb;
+use scatterfarm_search::Progress;
 
 /// The protocol's state of a job.
 fn state_of(job: &Job) -> pb::JobState {
@@ -57,6 +58,27 @@ pub fn job_status(scheduler: &Scheduler, job: &Job) -> pb::JobStatus {
         eta_seconds: eta.unwrap_or(-1.0),
         workers_busy: scheduler.workers_busy(&job.id),
         submitted_unix_seconds: job.record.submitted_unix,
+        refining: p.refining,
+        sweep: p.sweep,
+        sweeps: p.sweeps,
+    }
+}
+
+/// The search's progress as a status carries it, for displays ([`Progress::stage`]).
+pub fn progress_of(s: &pb::JobStatus) -> Progress {
+    Progress {
+        level: s.level,
+        levels: s.levels,
+        permutation: s.permutation,
+        permutations: s.permutations,
+        region: s.region,
+        regions: s.regions,
+        renders_done: s.renders_done,
+        renders_total: s.renders_total,
+        best_score: s.best_similarity.is_finite().then_some(s.best_similarity),
+        refining: s.refining,
+        sweep: s.sweep,
+        sweeps: s.sweeps,
     }
 }
 

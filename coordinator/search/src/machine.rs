@@ -199,6 +199,37 @@ pub struct Progress {
     /// estimate with racing, early step 2, re-scoring or unknown materials).
     pub renders_total: u64,
     pub best_score: Option<f64>,
+    /// Whether the refinement stage has begun, its sweeps ended so far, and the most it may
+    /// run (0 for a search without refinement).
+    #[serde(default)]
+    pub refining: bool,
+    #[serde(default)]
+    pub sweep: u32,
+    #[serde(default)]
+    pub sweeps: u32,
+}
+
+impl Progress {
+    /// Where the search stands, in words: its level, permutation and region, or its
+    /// refinement sweep.
+    pub fn stage(&self) -> String {
+        if self.refining {
+            return format!(
+                "refinement · sweep {}/{}",
+                (self.sweep + 1).min(self.sweeps),
+                self.sweeps
+            );
+        }
+        format!(
+            "level {}/{} · permutation {}/{} · region {}/{}",
+            self.level,
+            self.levels.saturating_sub(1),
+            (self.permutation + 1).min(self.permutations),
+            self.permutations,
+            self.region,
+            self.regions
+        )
+    }
 }
 
 /// A racing step's stage.
@@ -576,6 +607,12 @@ impl Search {
             renders_done: self.next_request - self.pending.len() as u64,
             renders_total: renders_total.max(self.next_request),
             best_score: self.current_best().map(|(_, s)| s),
+            refining: self.refinement.is_some(),
+            sweep: self
+                .refinement
+                .as_ref()
+                .map_or(0, |r| r.sweeps_done() as u32),
+            sweeps: self.config.refine.as_ref().map_or(0, |r| r.max_sweeps),
         }
     }
 

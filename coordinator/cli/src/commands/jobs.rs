@@ -136,6 +136,9 @@ pub fn status_json(s: &pb::JobStatus) -> serde_json::Value {
         "permutations": s.permutations,
         "region": s.region,
         "regions": s.regions,
+        "refining": s.refining,
+        "sweep": s.sweep,
+        "sweeps": s.sweeps,
         "renders_done": s.renders_done,
         "renders_total": s.renders_total,
         "best_similarity": finite(s.best_similarity),
@@ -147,17 +150,12 @@ pub fn status_json(s: &pb::JobStatus) -> serde_json::Value {
     })
 }
 
-/// Level, permutation, region, best similarity, rate, ETA and workers busy, and what the job
-/// waits for.
+/// The search's stage (level, permutation and region, or refinement sweep), best similarity,
+/// rate, ETA and workers busy, and what the job waits for.
 fn progress_text(s: &pb::JobStatus) -> String {
     let mut text = format!(
-        "level {}/{} · permutation {}/{} · region {}/{} · best {} · {:.2} M photons/s · ETA {} · {} workers busy",
-        s.level,
-        s.levels.saturating_sub(1),
-        (s.permutation + 1).min(s.permutations),
-        s.permutations,
-        s.region,
-        s.regions,
+        "{} · best {} · {:.2} M photons/s · ETA {} · {} workers busy",
+        scatterfarm_coordinator::status::progress_of(s).stage(),
         finite(s.best_similarity)
             .map(|v| format!("{v:.4}"))
             .unwrap_or_else(|| "-".into()),

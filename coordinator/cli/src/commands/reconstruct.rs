@@ -111,13 +111,8 @@ pub fn run_checked(
         bar.set_position(pr.renders_done);
         let rate = used.photons as f64 / started.elapsed().as_secs_f64().max(1e-9);
         bar.set_message(format!(
-            "level {}/{} · permutation {}/{} · region {}/{} · best {:.4} · {:.2} M photons/s",
-            pr.level,
-            pr.levels - 1,
-            (pr.permutation + 1).min(pr.permutations),
-            pr.permutations,
-            pr.region,
-            pr.regions,
+            "{} · best {:.4} · {:.2} M photons/s",
+            pr.stage(),
             pr.best_score.unwrap_or(f64::NAN),
             rate / 1e6
         ));

@@ -724,7 +724,14 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
     let mut restored_at = None;
     while !s.is_finished() {
         let scores: Vec<Score> = s.pending().iter().map(|r| blocked(&truth, r)).collect();
+        let progress = s.progress();
+        assert_eq!(progress.refining, s.refinement().is_some());
+        assert_eq!(progress.sweeps, 6);
         if s.refinement().is_some() {
+            assert!(
+                progress.stage().starts_with("refinement · sweep ") && progress.sweep < 6,
+                "{progress:?}"
+            );
             refining += 1;
             assert!(s
                 .pending()
@@ -746,6 +753,12 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         s.submit_scores(&scores).unwrap();
     }
     assert!(refining >= 1, "the refinement ran");
+    let done = s.progress();
+    assert_eq!(
+        done.sweep as usize,
+        s.refinement().unwrap().history().len(),
+        "every sweep ended"
+    );
     let result = s.result().unwrap();
     assert_eq!(result.assignment, truth);
     assert_eq!(restored_at.as_ref(), Some(&truth));
