@@ -5,6 +5,8 @@
 #   sweeps of 102 400 photons per source, confirmations of 204 800, up to 24 sweeps.
 # likelihood-differential-direct8: the same, the direct renders of a sweep (changes it cannot
 #   reweight) at an eighth of its photons (12 800).
+# likelihood-differential-direct8-z2: the same, a change accepted for a confirmation at 2 paired
+#   standard errors instead of 3.
 # paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
 # anything else: `--search NAME` with its defaults.
 search_flags() {
@@ -16,6 +18,10 @@ search_flags() {
       flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800) ;;
+    likelihood-differential-direct8-z2)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set refine_z=2) ;;
     paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
     *) flags=(--search "$1") ;;
   esac
