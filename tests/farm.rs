@@ -132,20 +132,17 @@ fn a_coordinator_killed_four_times_resumes_to_the_same_result() {
     farm.wait_workers(&["a", "b"]);
 }
 
-#[test]
-fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
-    // Racing (first stages extended by their contenders' groups), re-scoring, early step 2
-    // and common random numbers, across processes and a coordinator killed mid-search, which
-    // loses the first-stage counts it held.
+/// Submits `job_file` to a farm of two workers, kills the coordinator once the job has answered
+/// more than `mark` of its requests, starts it again on the same data and waits for the job to
+/// finish: the farm and the job's id.
+fn finished_through_a_restart(job_file: &str, mark: f64) -> (Farm, String) {
     let mut farm = Farm::start(&["--task-seconds", "0.05"]);
     farm.start_worker("a", &[]);
     farm.start_worker("b", &[]);
     farm.wait_workers(&["a", "b"]);
-    let id = farm.submit_file("job/fast.toml");
-    // A fifth of the requests: the job is short, and a later mark can pass between two polls
-    // on a loaded machine.
-    let before = farm.wait_for(&id, "a fifth of the requests", |s| {
-        s["state"] == "searching" && fraction(s) > 0.2
+    let id = farm.submit_file(job_file);
+    let before = farm.wait_for(&id, &format!("{mark} of the requests"), |s| {
+        s["state"] == "searching" && fraction(s) > mark
     });
     farm.kill_coordinator();
     farm.start_coordinator();
@@ -155,6 +152,17 @@ fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
         "before the kill: {before:#}\nafter the restart: {after:#}"
     );
     farm.wait_finished(&id);
+    (farm, id)
+}
+
+#[test]
+fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
+    // Racing (first stages extended by their contenders' groups), re-scoring, early step 2
+    // and common random numbers, across processes and a coordinator killed mid-search, which
+    // loses the first-stage counts it held.
+    // A fifth of the requests: the job is short, and a later mark can pass between two polls
+    // on a loaded machine.
+    let (farm, id) = finished_through_a_restart("job/fast.toml", 0.2);
     farm.assert_result_of(Search::Fast, &id, true);
     let (report, _) = farm.result(&id);
     let config = &report["configuration"];
@@ -180,22 +188,7 @@ fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
 /// search resumes from the stored change scores; the job ends exactly as in one process.
 #[test]
 fn a_differential_job_through_a_restart_ends_as_in_one_process() {
-    let mut farm = Farm::start(&["--task-seconds", "0.05"]);
-    farm.start_worker("a", &[]);
-    farm.start_worker("b", &[]);
-    farm.wait_workers(&["a", "b"]);
-    let id = farm.submit_file("job/differential.toml");
-    let before = farm.wait_for(&id, "half the requests", |s| {
-        s["state"] == "searching" && fraction(s) > 0.5
-    });
-    farm.kill_coordinator();
-    farm.start_coordinator();
-    let after = farm.status(&id);
-    assert!(
-        after["renders_done"].as_u64() >= before["renders_done"].as_u64(),
-        "before the kill: {before:#}\nafter the restart: {after:#}"
-    );
-    farm.wait_finished(&id);
+    let (farm, id) = finished_through_a_restart("job/differential.toml", 0.5);
     farm.assert_result_of(Search::Differential, &id, true);
     let (report, _) = farm.result(&id);
     assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
