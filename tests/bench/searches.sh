@@ -7,6 +7,7 @@
 #   reweight) at an eighth of its photons (12 800).
 # likelihood-differential-direct8-z2: the same, a change accepted for a confirmation at 2 paired
 #   standard errors instead of 3.
+# likelihood-differential-direct8-swaps: direct8 with neighbouring-pixel swaps in the sweeps.
 # paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
 # anything else: `--search NAME` with its defaults.
 search_flags() {
@@ -22,6 +23,10 @@ search_flags() {
       flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800 --set refine_z=2) ;;
+    likelihood-differential-direct8-swaps)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set refine_swaps=true) ;;
     paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
     *) flags=(--search "$1") ;;
   esac

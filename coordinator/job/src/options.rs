@@ -259,6 +259,7 @@ impl JobSpec {
                     pixel_mm: 1.0,
                     direct_photons: self.refine_direct_photons,
                     retest_z: Some(self.refine_retest_z.unwrap_or(likelihood::REFINE_RETEST_Z)),
+                    swap_pixels: self.refine_swaps.unwrap_or(false),
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

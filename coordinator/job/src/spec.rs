@@ -131,6 +131,9 @@ pub struct JobSpec {
     /// Whether refinement sweeps also set each connected region (of two pixels or more)
     /// wholly to each other candidate material (likelihood: true).
     pub refine_recolour: Option<bool>,
+    /// Whether refinement sweeps also swap each pair of neighbouring pixels (8-connected) of
+    /// different materials, moving one object pixel at a time (likelihood: false).
+    pub refine_swaps: Option<bool>,
     /// A refinement sweep of a map swept before renders directly only the changes whose
     /// paired z there was above this (likelihood: -1; `-inf`: every change).
     pub refine_retest_z: Option<f64>,
@@ -184,6 +187,7 @@ impl Default for JobSpec {
             refine_screen: None,
             refine_escalations: None,
             refine_recolour: None,
+            refine_swaps: None,
             refine_retest_z: None,
             name: None,
             engine_fingerprint: None,

@@ -158,6 +158,11 @@ pub struct JobArgs {
     /// (objects and background) wholly to each other candidate material (likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub refine_recolour: Option<bool>,
+    /// Whether refinement sweeps also swap each pair of neighbouring pixels (8-connected) of
+    /// different materials: one object pixel moved at a time, keeping the object's size
+    /// (likelihood: false).
+    #[arg(long, value_name = "BOOL")]
+    pub refine_swaps: Option<bool>,
     /// A refinement sweep of a map swept before (after a stall, or escalated) renders
     /// directly only the changes whose paired z on its last sweep was above this; changes a
     /// differential render estimates are always tried (likelihood: -1; -inf: every change).
@@ -207,6 +212,7 @@ impl JobArgs {
             refine_screen: self.refine_screen,
             refine_escalations: self.refine_escalations,
             refine_recolour: self.refine_recolour,
+            refine_swaps: self.refine_swaps,
             refine_retest_z: self.refine_retest_z,
             ..JobSpec::default()
         }

@@ -702,6 +702,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         pixel_mm: 1.0,
         direct_photons: None,
         retest_z: None,
+        swap_pixels: false,
     };
     let config = SearchConfig {
         grid: 4,
