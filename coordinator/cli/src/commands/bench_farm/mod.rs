@@ -177,10 +177,13 @@ pub fn run(args: FarmBenchArgs) -> Result<()> {
     let outcome = match outcome {
         Ok(o) => o,
         Err(e) => {
-            return Err(e.context(format!(
-                "the coordinator's log ends:\n{}",
-                coordinator.log_tail()
-            )))
+            let tail = coordinator.log_tail();
+            let log = if tail.trim().is_empty() {
+                "the coordinator's log is empty".to_string()
+            } else {
+                format!("the coordinator's log ends:\n{tail}")
+            };
+            return Err(e.context(format!("bench farm failed; {log}")));
         }
     };
     runtime.shutdown_timeout(Duration::from_secs(1));
