@@ -722,29 +722,23 @@ impl Refinement {
                 }
             }
         }
-        if self.config.move_objects {
-            let mut seen: BTreeSet<Vec<(u32, u16)>> =
-                out.iter().map(|c| c.pixels.clone()).collect();
-            for c in self.object_moves() {
+        // Moves, recolours and swaps, in that order, each once and never a single already
+        // listed (nor an empty move).
+        let mut seen: BTreeSet<Vec<(u32, u16)>> = out.iter().map(|c| c.pixels.clone()).collect();
+        let more = [
+            (
+                self.config.move_objects,
+                Self::object_moves as fn(&Self) -> Vec<Change>,
+            ),
+            (self.config.recolour_regions, Self::recolours),
+            (self.config.swap_pixels, Self::swaps),
+        ];
+        for (on, changes) in more {
+            if !on {
+                continue;
+            }
+            for c in changes(self) {
                 if !c.pixels.is_empty() && seen.insert(c.pixels.clone()) {
-                    out.push(c);
-                }
-            }
-        }
-        if self.config.recolour_regions {
-            let mut seen: BTreeSet<Vec<(u32, u16)>> =
-                out.iter().map(|c| c.pixels.clone()).collect();
-            for c in self.recolours() {
-                if seen.insert(c.pixels.clone()) {
-                    out.push(c);
-                }
-            }
-        }
-        if self.config.swap_pixels {
-            let mut seen: BTreeSet<Vec<(u32, u16)>> =
-                out.iter().map(|c| c.pixels.clone()).collect();
-            for c in self.swaps() {
-                if seen.insert(c.pixels.clone()) {
                     out.push(c);
                 }
             }

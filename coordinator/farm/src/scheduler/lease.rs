@@ -141,11 +141,11 @@ impl Scheduler {
                 job_geometry: group.geometry == job.plan.search_geometry,
                 table: group.table.clone(),
                 items: group.items.iter().map(|i| i.item.clone()).collect(),
-                differential: (!group.changes.is_empty()).then(|| DifferentialPart {
+                differential: group.is_differential().then(|| DifferentialPart {
                     changes: group.changes.clone(),
                     chunk: scatterfarm_model::differential::CHUNK_PHOTONS,
                 }),
-                scoring: scoring.filter(|_| !group.changes.is_empty()),
+                scoring: scoring.filter(|_| group.is_differential()),
             };
             self.leases.insert(
                 piece.task_id,
