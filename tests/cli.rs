@@ -354,4 +354,13 @@ fn the_quality_bench_takes_scene_paths_and_checks_the_truth() {
         count("wrong_told") + count("wrong_untold") <= wrong,
         "{run}"
     );
+    // The found map's own one-pixel changes: those beating it, and of those the ones that set
+    // a wrong pixel right (at most one per wrong pixel).
+    let (escapes, toward) = (count("escapes"), count("escapes_toward_truth"));
+    assert!(toward <= escapes && toward <= wrong, "{run}");
+    assert!(escapes <= 16 * 2, "{run}");
+    assert!(
+        run["escape_best_z"].as_f64().is_some_and(f64::is_finite),
+        "{run}"
+    );
 }

@@ -8,6 +8,10 @@
 # likelihood-differential-direct8-z2: the same, a change accepted for a confirmation at 2 paired
 #   standard errors instead of 3.
 # likelihood-differential-direct8-swaps: direct8 with neighbouring-pixel swaps in the sweeps.
+# likelihood-differential-direct8-blocks: direct8 with 2 × 2 blocks and neighbouring pairs set
+#   wholly to each material in the sweeps.
+# likelihood-differential-direct8-simplify: direct8 with simplification rounds at 1 paired
+#   standard error where the stage would end.
 # paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
 # anything else: `--search NAME` with its defaults.
 search_flags() {
@@ -27,6 +31,14 @@ search_flags() {
       flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800 --set refine_swaps=true) ;;
+    likelihood-differential-direct8-blocks)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set refine_blocks=true) ;;
+    likelihood-differential-direct8-simplify)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set refine_simplify_z=1) ;;
     paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
     *) flags=(--search "$1") ;;
   esac

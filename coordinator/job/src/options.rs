@@ -260,6 +260,8 @@ impl JobSpec {
                     direct_photons: self.refine_direct_photons,
                     retest_z: Some(self.refine_retest_z.unwrap_or(likelihood::REFINE_RETEST_Z)),
                     swap_pixels: self.refine_swaps.unwrap_or(false),
+                    blocks: self.refine_blocks.unwrap_or(false),
+                    simplify_z: self.refine_simplify_z,
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

@@ -134,6 +134,13 @@ pub struct JobSpec {
     /// Whether refinement sweeps also swap each pair of neighbouring pixels (8-connected) of
     /// different materials, moving one object pixel at a time (likelihood: false).
     pub refine_swaps: Option<bool>,
+    /// Whether refinement sweeps also set each 2 × 2 block and each pair of neighbouring
+    /// pixels wholly to each candidate material (likelihood: false).
+    pub refine_blocks: Option<bool>,
+    /// Where refinement would end, a simplification round first: every non-background
+    /// pixel and region set to the background unless that loses by more than this many paired
+    /// standard errors (likelihood: off).
+    pub refine_simplify_z: Option<f64>,
     /// A refinement sweep of a map swept before renders directly only the changes whose
     /// paired z there was above this (likelihood: -1; `-inf`: every change).
     pub refine_retest_z: Option<f64>,
@@ -188,6 +195,8 @@ impl Default for JobSpec {
             refine_escalations: None,
             refine_recolour: None,
             refine_swaps: None,
+            refine_blocks: None,
+            refine_simplify_z: None,
             refine_retest_z: None,
             name: None,
             engine_fingerprint: None,

@@ -8,7 +8,9 @@
 //! render of the truth estimates every map that differs from it in one pixel, and each wrong
 //! pixel of the map found is then either resolved (the truth beats the truth with that pixel
 //! as the map has it by at least [`RESOLVED_Z`] paired standard errors: the target tells, the
-//! search missed it) or not (information).
+//! search missed it) or not (information). The found map's own one-pixel changes
+//! ([`Escapes`]) then say how the search missed: a map that no single pixel improves is a
+//! local optimum that only larger moves leave.
 
 use crate::plan::Plan;
 use anyhow::{Context, Result};
@@ -36,6 +38,25 @@ pub struct TruthCheck {
     pub std_error: f64,
     /// The truth's one-pixel neighbours, where the engine renders differentially.
     pub neighbours: Option<Neighbours>,
+    /// The found map's one-pixel changes that beat it, where the engine renders
+    /// differentially: none means the map is a local optimum of single-pixel changes (a
+    /// search stopped there needs larger moves), some means it stopped early.
+    #[serde(default)]
+    pub escapes: Option<Escapes>,
+}
+
+/// The one-pixel changes of the map found, estimated from one differential render of it on
+/// the check's photons.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Escapes {
+    /// Changes estimated.
+    pub estimated: usize,
+    /// Changes that beat the map found by at least [`RESOLVED_Z`] paired standard errors.
+    pub beating: usize,
+    /// Of those, the changes that set a pixel to the truth's material.
+    pub toward_truth: usize,
+    /// The best change's margin in standard errors.
+    pub best_z: Option<f64>,
 }
 
 /// The truth's one-pixel neighbours (each pixel set to each other material of the search's
@@ -133,11 +154,13 @@ pub fn check(
     let (t, f) = (score(&truth)?, score(found)?);
     let (margin, std_error) = paired(&t.blocks, &f.blocks).context("too few observations")?;
     let neighbours = neighbours(scoring, engine, &table, &truth, found, seed, photons, &t)?;
+    let escapes = escapes(scoring, engine, &table, &truth, found, seed, photons, &f)?;
     Ok(Some(TruthCheck {
         photons,
         margin,
         std_error,
         neighbours,
+        escapes,
     }))
 }
 
@@ -154,11 +177,92 @@ fn neighbours(
     photons: u32,
     truth_score: &likelihood::Deviance,
 ) -> Result<Option<Neighbours>> {
+    let Some(one_pixel) = one_pixel_z(scoring, engine, table, truth, seed, photons, truth_score)
+        .context("the truth's neighbours")?
+    else {
+        return Ok(None);
+    };
+    let wrong = (0..truth.len())
+        .filter(|&p| found.get(p).is_some_and(|&f| f != truth[p]))
+        .map(|p| WrongPixel {
+            pixel: p as u32,
+            z: one_pixel.z.get(&(p as u32, found[p])).map(|z| -z),
+        })
+        .collect();
+    // The truth's margin over each neighbour is minus the neighbour's over the truth.
+    Ok(Some(Neighbours {
+        estimated: one_pixel.z.len(),
+        not_estimated: one_pixel.not_estimated,
+        unresolved: one_pixel.z.values().filter(|&&z| -z < RESOLVED_Z).count(),
+        wrong,
+    }))
+}
+
+/// The found map's one-pixel changes against it (whose plain deviance is `found_score`):
+/// those that beat it, and those of them that set a pixel to the truth's material.
+#[allow(clippy::too_many_arguments)]
+fn escapes(
+    scoring: &Scoring,
+    engine: &dyn Engine,
+    table: &[scatterfarm_model::Material],
+    truth: &[u16],
+    found: &[u16],
+    seed: u64,
+    photons: u32,
+    found_score: &likelihood::Deviance,
+) -> Result<Option<Escapes>> {
+    let Some(one_pixel) = one_pixel_z(scoring, engine, table, found, seed, photons, found_score)
+        .context("the found map's neighbours")?
+    else {
+        return Ok(None);
+    };
+    let beating = |threshold: f64| {
+        one_pixel
+            .z
+            .iter()
+            .filter(move |(_, &z)| z >= threshold)
+            .map(|(&(p, d), _)| (p, d))
+    };
+    Ok(Some(Escapes {
+        estimated: one_pixel.z.len(),
+        beating: beating(RESOLVED_Z).count(),
+        toward_truth: beating(RESOLVED_Z)
+            .filter(|&(p, d)| truth.get(p as usize) == Some(&d))
+            .count(),
+        best_z: one_pixel
+            .z
+            .values()
+            .copied()
+            .fold(None, |best, z| match best {
+                Some(b) if b >= z => Some(b),
+                _ => Some(z),
+            }),
+    }))
+}
+
+/// Every one-pixel change of a map that a differential render of it estimates, with its
+/// margin in paired standard errors over the map (positive: the change fits better).
+struct OnePixel {
+    z: std::collections::BTreeMap<(u32, u16), f64>,
+    not_estimated: usize,
+}
+
+/// [`OnePixel`] of `map` (whose plain deviance on `seed` and `photons` is `map_score`);
+/// `None` when the engine does not render differentially.
+fn one_pixel_z(
+    scoring: &Scoring,
+    engine: &dyn Engine,
+    table: &[scatterfarm_model::Material],
+    map: &[u16],
+    seed: u64,
+    photons: u32,
+    map_score: &likelihood::Deviance,
+) -> Result<Option<OnePixel>> {
     let materials = table.len() as u16;
-    let all: Vec<Change> = (0..truth.len() as u32)
+    let all: Vec<Change> = (0..map.len() as u32)
         .flat_map(|p| {
             (0..materials)
-                .filter(move |&d| d != truth[p as usize])
+                .filter(move |&d| d != map[p as usize])
                 .map(move |d| Change {
                     pixels: vec![(p, d)],
                 })
@@ -166,11 +270,11 @@ fn neighbours(
         .collect();
     let (estimable, not_estimated): (Vec<Change>, Vec<Change>) = all
         .into_iter()
-        .partition(|c| change_is_reweightable(table, truth, c));
+        .partition(|c| change_is_reweightable(table, map, c));
     let observations = scoring.target.values.len().max(1);
     let per_render = (NEIGHBOUR_BYTES / (observations * 8)).max(1);
     let item = RenderItem {
-        assignment: truth.to_vec(),
+        assignment: map.to_vec(),
         seed,
     };
     let n = u64::from(photons);
@@ -190,28 +294,20 @@ fn neighbours(
                 {
                     return Ok(None)
                 }
-                Err(e) => return Err(e.context("the truth's neighbours")),
+                Err(e) => return Err(e),
             };
         for (change, delta) in changes.iter().zip(&output.deltas) {
             let Some(delta) = delta else { continue };
             let d = likelihood::deviance_reweighted(&scoring.target, &output.counts, delta, n)?;
-            if let Some((margin, se)) = paired(&truth_score.blocks, &d.blocks) {
+            // The change's margin over the map (scores: higher fits better).
+            if let Some((margin, se)) = paired(&d.blocks, &map_score.blocks) {
                 let z = if se > 0.0 { margin / se } else { 0.0 };
                 z_of.insert(change.pixels[0], z);
             }
         }
     }
-    let wrong = (0..truth.len())
-        .filter(|&p| found.get(p).is_some_and(|&f| f != truth[p]))
-        .map(|p| WrongPixel {
-            pixel: p as u32,
-            z: z_of.get(&(p as u32, found[p])).copied(),
-        })
-        .collect();
-    Ok(Some(Neighbours {
-        estimated: z_of.len(),
+    Ok(Some(OnePixel {
+        z: z_of,
         not_estimated: not_estimated.len(),
-        unresolved: z_of.values().filter(|&&z| z < RESOLVED_Z).count(),
-        wrong,
     }))
 }

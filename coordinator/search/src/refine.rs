@@ -83,6 +83,32 @@ pub struct RefineConfig {
     /// and so changes the counts far less than either pixel alone.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub swap_pixels: bool,
+    /// Whether sweeps also set each 2 × 2 block, and each pair of neighbouring pixels side by
+    /// side or one above the other, wholly to each candidate material (where two pixels or
+    /// more change): an object's edge grown, shrunk or shifted two pixels at a time. Such a
+    /// change moves the counts about twice as far as one pixel against about √2 times the
+    /// noise, so it clears `z` where each of its pixels alone does not, and it leaves the
+    /// local optima where one pixel alone cannot improve (an object found one pixel too thin
+    /// and one pixel off).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub blocks: bool,
+    /// Where the stage would end, a **simplification** round first: a sweep of every
+    /// non-background pixel and region set to the background, in which a change is a
+    /// candidate, and a confirmation's option wins, unless it loses to the current map by
+    /// more than this many paired standard errors. What the target cannot tell from the
+    /// background becomes the background (an opaque pixel deep inside a tunnel that no photon
+    /// reaches); what it can stays. After a round that changes the map, sweeps go on; the
+    /// stage ends after a round that changes nothing, or [`MAX_SIMPLIFICATIONS`] rounds.
+    /// `None`: no simplification.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub simplify_z: Option<f64>,
+}
+
+/// The most simplification rounds one refinement runs ([`RefineConfig::simplify_z`]).
+pub const MAX_SIMPLIFICATIONS: u32 = 3;
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 fn default_pixel_mm() -> f64 {
@@ -145,6 +171,15 @@ impl RefineConfig {
         }
         if self.changes_per_render == 0 {
             return Some("a differential render needs room for at least one change".into());
+        }
+        if self
+            .simplify_z
+            .is_some_and(|z| !(z.is_finite() && z >= 0.0))
+        {
+            return Some(format!(
+                "the refinement's simplification z must be a number ≥ 0, got {}",
+                self.simplify_z.unwrap_or_default()
+            ));
         }
         if self.retest_z.is_some_and(f64::is_nan) {
             return Some(
@@ -237,6 +272,9 @@ pub struct SweepRecord {
     /// The current map after the sweep.
     #[serde(default)]
     pub map: Vec<u16>,
+    /// A simplification round ([`RefineConfig::simplify_z`]).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub simplification: bool,
 }
 
 /// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
@@ -301,6 +339,12 @@ pub struct Refinement {
     /// What the last sweep found within reach of `z`, on the map it swept.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     reach: Option<Reach>,
+    /// Whether the pending sweep or confirmation is a simplification round.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    simplifying: bool,
+    /// Simplification rounds so far.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    simplifications: u32,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -358,6 +402,8 @@ impl Refinement {
             stalls: 0,
             escalation: 0,
             reach: None,
+            simplifying: false,
+            simplifications: 0,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -413,14 +459,12 @@ impl Refinement {
 
     fn emit_sweep(&mut self) {
         if self.sweep >= self.config.max_sweeps {
-            self.waiting = None;
-            self.pending.clear();
+            self.end();
             return;
         }
         let changes = self.changes();
         if changes.is_empty() {
-            self.waiting = None;
-            self.pending.clear();
+            self.end();
             return;
         }
         let seed = seeds::derive(self.job_seed, Stream::RefineSweep(self.sweep));
@@ -622,16 +666,40 @@ impl Refinement {
             .collect()
     }
 
-    /// Doubles the photons and starts the next sweep, or ends the stage when it may not.
+    /// Doubles the photons and starts the next sweep, or starts a simplification round, or
+    /// ends the stage when it may do neither.
     fn escalate_or_end(&mut self) {
         if self.escalation < self.config.escalations {
             self.escalation += 1;
             self.stalls = 0;
             self.sweep += 1;
             self.emit_sweep();
+        } else if self.config.simplify_z.is_some()
+            && self.simplifications < MAX_SIMPLIFICATIONS
+            && self.sweep + 1 < self.config.max_sweeps
+        {
+            self.simplifications += 1;
+            self.simplifying = true;
+            self.stalls = 0;
+            self.sweep += 1;
+            self.emit_sweep();
         } else {
-            self.waiting = None;
-            self.pending.clear();
+            self.end();
+        }
+    }
+
+    fn end(&mut self) {
+        self.waiting = None;
+        self.pending.clear();
+        self.simplifying = false;
+    }
+
+    /// The z a change must beat the current map by to be a candidate, and a confirmation's
+    /// option to win: `z`, or in a simplification round minus its z.
+    fn threshold(&self) -> f64 {
+        match (self.simplifying, self.config.simplify_z) {
+            (true, Some(z)) => -z,
+            _ => self.config.z,
         }
     }
 
@@ -639,6 +707,9 @@ impl Refinement {
     /// map was swept before and `change` did not come within [`RefineConfig::retest_z`] of
     /// beating it there.
     fn retested(&self, change: &Change) -> bool {
+        if self.simplifying {
+            return true;
+        }
         match &self.reach {
             Some(reach) if self.config.retest_z.is_some() && reach.map == self.current => {
                 reach.changes.contains(&change.pixels)
@@ -712,6 +783,9 @@ impl Refinement {
 
     /// Every change a sweep tries, in a fixed order, without repeats or no-ops.
     fn changes(&self) -> Vec<Change> {
+        if self.simplifying {
+            return self.simplifications();
+        }
         let mut out: Vec<Change> = Vec::new();
         for (p, &m) in self.current.iter().enumerate() {
             for &d in &self.materials {
@@ -732,6 +806,7 @@ impl Refinement {
             ),
             (self.config.recolour_regions, Self::recolours),
             (self.config.swap_pixels, Self::swaps),
+            (self.config.blocks, Self::blocks),
         ];
         for (on, changes) in more {
             if !on {
@@ -740,6 +815,66 @@ impl Refinement {
             for c in changes(self) {
                 if !c.pixels.is_empty() && seen.insert(c.pixels.clone()) {
                     out.push(c);
+                }
+            }
+        }
+        out
+    }
+
+    /// A simplification round's changes: each pixel not of the background set to it, then
+    /// each region of two pixels or more not of the background set wholly to it.
+    fn simplifications(&self) -> Vec<Change> {
+        let background = self.background();
+        let mut out: Vec<Change> = self
+            .current
+            .iter()
+            .enumerate()
+            .filter(|(_, &m)| m != background)
+            .map(|(p, _)| Change {
+                pixels: vec![(p as u32, background)],
+            })
+            .collect();
+        for (m, pixels) in self.regions() {
+            if m != background && pixels.len() >= 2 {
+                out.push(Change {
+                    pixels: pixels.iter().map(|&p| (p as u32, background)).collect(),
+                });
+            }
+        }
+        out
+    }
+
+    /// Each 2 × 2 block, then each horizontal and each vertical pair of neighbouring pixels,
+    /// set wholly to each candidate material where at least two of its pixels change; blocks
+    /// and pairs in the order of their top-left pixel.
+    fn blocks(&self) -> Vec<Change> {
+        let n = self.grid as usize;
+        let shapes: [&[(usize, usize)]; 3] = [
+            &[(0, 0), (0, 1), (1, 0), (1, 1)],
+            &[(0, 0), (0, 1)],
+            &[(0, 0), (1, 0)],
+        ];
+        let mut out = Vec::new();
+        for shape in shapes {
+            for y in 0..n {
+                for x in 0..n {
+                    if shape.iter().any(|&(dy, dx)| y + dy >= n || x + dx >= n) {
+                        continue;
+                    }
+                    let pixels: Vec<usize> = shape
+                        .iter()
+                        .map(|&(dy, dx)| (y + dy) * n + x + dx)
+                        .collect();
+                    for &d in &self.materials {
+                        let changed: Vec<(u32, u16)> = pixels
+                            .iter()
+                            .filter(|&&p| self.current[p] != d)
+                            .map(|&p| (p as u32, d))
+                            .collect();
+                        if changed.len() >= 2 {
+                            out.push(Change { pixels: changed });
+                        }
+                    }
                 }
             }
         }
@@ -995,7 +1130,8 @@ impl Refinement {
                 self.z_of(s, against)
             })
             .collect();
-        if let Some(retest_z) = self.config.retest_z {
+        let threshold = self.threshold();
+        if let (Some(retest_z), false) = (self.config.retest_z, self.simplifying) {
             // A change without a z (no blocks to pair) stays in reach.
             let changes = changes
                 .iter()
@@ -1013,7 +1149,7 @@ impl Refinement {
             .enumerate()
             .filter_map(|(k, z)| {
                 let z = (*z)?;
-                (z > self.config.z).then_some((z, k))
+                (z > threshold).then_some((z, k))
             })
             .collect();
         // Best first; ties keep the fixed order.
@@ -1035,8 +1171,13 @@ impl Refinement {
                 score: reference.value,
                 reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
                 map: self.current.clone(),
+                simplification: self.simplifying,
             });
-            self.escalate_or_end();
+            if self.simplifying {
+                self.end();
+            } else {
+                self.escalate_or_end();
+            }
             return;
         }
         let mut combined = self.current.clone();
@@ -1128,6 +1269,7 @@ impl Refinement {
             score: reference.value,
             reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
             map: self.current.clone(),
+            simplification: self.simplifying,
         });
         self.waiting = Some(Waiting::Confirm {
             options,
@@ -1158,12 +1300,16 @@ impl Refinement {
                 .map(|k| scores.get(k + 1).copied())
                 .collect()
         };
+        let threshold = self.threshold();
         let beating = |k: usize| -> Option<f64> {
             let s = of_option[k]?;
             let z = self.z_of(s, reference)?;
-            (z > self.config.z).then_some(s.value)
+            (z > threshold).then_some(s.value)
         };
-        let winner = if reweighted {
+        let winner = if reweighted && self.simplifying {
+            // The largest simplification that passes (the options grow).
+            (0..options.len()).rev().find(|&k| beating(k).is_some())
+        } else if reweighted {
             // The best estimate among those beating `M` (ties: the smaller option).
             (0..options.len())
                 .filter_map(|k| beating(k).map(|v| (v, k)))
@@ -1201,7 +1347,14 @@ impl Refinement {
                 }
             }
         }
-        if self.stalls >= 2 {
+        if self.simplifying {
+            // A round that changed the map: sweeps go on from it; one that did not: the end.
+            self.simplifying = false;
+            if self.stalls > 0 {
+                self.end();
+                return;
+            }
+        } else if self.stalls >= 2 {
             self.escalate_or_end();
             return;
         }
@@ -1229,6 +1382,8 @@ mod tests {
             direct_photons: None,
             retest_z: None,
             swap_pixels: false,
+            blocks: false,
+            simplify_z: None,
         }
     }
 
@@ -1263,6 +1418,19 @@ mod tests {
         reweightable: Vec<Vec<bool>>,
         opaque: Vec<bool>,
     ) -> Refinement {
+        let score = |a: &[u16], seed: u64, photons: u32| score_of(truth, a, seed, photons);
+        run_scored(config, start, materials, reweightable, opaque, &score)
+    }
+
+    /// [`run_with`] against any scores of a 4 × 4 map (its assignment, seed and photons).
+    fn run_scored(
+        config: RefineConfig,
+        start: Vec<u16>,
+        materials: Vec<u16>,
+        reweightable: Vec<Vec<bool>>,
+        opaque: Vec<bool>,
+        score_of: &dyn Fn(&[u16], u64, u32) -> Scored,
+    ) -> Refinement {
         let mut r = Refinement::new(config, 4, materials, 1, start, reweightable, opaque);
         let mut steps = 0;
         while !r.is_finished() {
@@ -1278,11 +1446,11 @@ mod tests {
                             for &(p, m) in &c.pixels {
                                 a[p as usize] = m;
                             }
-                            let (value, blocks) = score_of(truth, &a, q.seed, q.photons);
+                            let (value, blocks) = score_of(&a, q.seed, q.photons);
                             Some(ChangeScore { value, blocks })
                         })
                         .collect();
-                    (score_of(truth, &q.assignment, q.seed, q.photons), changes)
+                    (score_of(&q.assignment, q.seed, q.photons), changes)
                 })
                 .collect();
             let scores: Vec<BlockScore> = scored
@@ -1298,6 +1466,74 @@ mod tests {
             assert!(steps < 50, "the refinement ends");
         }
         r
+    }
+
+    #[test]
+    fn simplification_clears_what_the_scores_cannot_see() {
+        // Pixels 12, 13, 14 and 15 (the bottom row) are hidden: no score sees them. The truth
+        // is background but pixel 5 and the hidden pixel 12; the start has the truth and two
+        // spurious hidden pixels, 14 and 15.
+        let hidden = |p: usize| p >= 12;
+        let mut truth = vec![0u16; 16];
+        truth[5] = 1;
+        truth[12] = 1;
+        let score = |a: &[u16], seed: u64, photons: u32| -> Scored {
+            let wrong = (0..16).filter(|&p| !hidden(p) && a[p] != truth[p]).count() as f64;
+            // Noise that the hidden pixels move but that sums to nothing.
+            let objects = (12..16).filter(|&p| a[p] != 0).count() as f64;
+            let blocks: Vec<f64> = (0..8)
+                .map(|b| {
+                    let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
+                    -wrong / 8.0 + sign * 0.001 * objects + ((seed % 97) as f64) * 0.01
+                        - f64::from(photons) * 0.01
+                })
+                .collect();
+            (blocks.iter().sum(), blocks)
+        };
+        let mut start = truth.clone();
+        start[14] = 1;
+        start[15] = 1;
+        let run = |simplify_z| {
+            let config = RefineConfig {
+                simplify_z,
+                ..config()
+            };
+            run_scored(
+                config,
+                start.clone(),
+                vec![0, 1],
+                Vec::new(),
+                Vec::new(),
+                &score,
+            )
+        };
+        // Without simplification nothing beats the start: it stays.
+        let kept = run(None);
+        assert_eq!(kept.current().0, &start[..]);
+        assert!(kept.history().iter().all(|h| !h.simplification));
+        // With it, every hidden pixel becomes the background (the hidden object too: the
+        // scores cannot tell it), and the seen one stays.
+        let simplified = run(Some(1.0));
+        let mut expected = truth.clone();
+        expected[12] = 0;
+        assert_eq!(simplified.current().0, &expected[..]);
+        let rounds: Vec<&SweepRecord> = simplified
+            .history()
+            .iter()
+            .filter(|h| h.simplification)
+            .collect();
+        assert!(!rounds.is_empty());
+        assert_eq!(rounds[0].changed, 3);
+        // A second round, on the simplified map, changes nothing and ends the stage.
+        assert_eq!(rounds.last().map(|h| h.changed), Some(0));
+        assert!(rounds.len() <= MAX_SIMPLIFICATIONS as usize);
+        // A negative z would clear what loses: refused.
+        assert!(RefineConfig {
+            simplify_z: Some(-1.0),
+            ..config()
+        }
+        .problem()
+        .is_some());
     }
 
     #[test]
@@ -1487,6 +1723,62 @@ mod tests {
             ..config()
         };
         assert_eq!(tried(swapping), tried(plain) + 8);
+    }
+
+    #[test]
+    fn blocks_set_two_by_two_blocks_and_pairs_wholly_to_each_material() {
+        // A 3 × 3 map, all background but pixel 4 (the centre): 4 blocks and 12 pairs.
+        let mut start = vec![0u16; 9];
+        start[4] = 1;
+        let blocking = RefineConfig {
+            blocks: true,
+            move_objects: false,
+            ..config()
+        };
+        let r = Refinement::new(
+            blocking.clone(),
+            3,
+            vec![0, 1],
+            1,
+            start.clone(),
+            Vec::new(),
+            Vec::new(),
+        );
+        let blocks = r.blocks();
+        // To material 1 every block and pair changes, except the pairs through the centre
+        // (one pixel each); to material 0 none changes two pixels.
+        assert_eq!(blocks.len(), 4 + 12 - 4);
+        for c in &blocks {
+            assert!(c.pixels.len() >= 2, "{c:?}");
+            assert!(c
+                .pixels
+                .iter()
+                .all(|&(p, d)| d == 1 && start[p as usize] == 0));
+            assert!(c.pixels.windows(2).all(|w| w[0].0 < w[1].0));
+        }
+        // The top-left block: pixels 0, 1 and 3 (4 already is material 1).
+        assert_eq!(blocks[0].pixels, vec![(0, 1), (1, 1), (3, 1)]);
+        assert!(blocks.iter().any(|c| c.pixels == vec![(6, 1), (7, 1)]));
+        assert!(blocks.iter().any(|c| c.pixels == vec![(2, 1), (5, 1)]));
+        // A sweep tries them all after the single pixels; without the option it does not.
+        let tried = |config: RefineConfig| {
+            Refinement::new(
+                config,
+                3,
+                vec![0, 1],
+                1,
+                start.clone(),
+                Vec::new(),
+                Vec::new(),
+            )
+            .changes()
+            .len()
+        };
+        let plain = RefineConfig {
+            move_objects: false,
+            ..config()
+        };
+        assert_eq!(tried(blocking), tried(plain) + blocks.len());
     }
 
     #[test]

@@ -163,6 +163,18 @@ pub struct JobArgs {
     /// (likelihood: false).
     #[arg(long, value_name = "BOOL")]
     pub refine_swaps: Option<bool>,
+    /// Whether refinement sweeps also set each 2 × 2 block and each pair of neighbouring
+    /// pixels (side by side or one above the other) wholly to each candidate material: an
+    /// object's edge grown, shrunk or shifted by two pixels at once, with about twice a
+    /// single pixel's signal over its noise (likelihood: false).
+    #[arg(long, value_name = "BOOL")]
+    pub refine_blocks: Option<bool>,
+    /// Where refinement would end, a simplification round first: every pixel and region not
+    /// of the background set to it unless that loses to the current map by more than Z paired
+    /// standard errors, so what the target cannot tell from the background (an opaque pixel
+    /// no photon reaches) becomes the background; sweeps then go on (likelihood: off).
+    #[arg(long, value_name = "Z")]
+    pub refine_simplify_z: Option<f64>,
     /// A refinement sweep of a map swept before (after a stall, or escalated) renders
     /// directly only the changes whose paired z on its last sweep was above this; changes a
     /// differential render estimates are always tried (likelihood: -1; -inf: every change).
@@ -213,6 +225,8 @@ impl JobArgs {
             refine_escalations: self.refine_escalations,
             refine_recolour: self.refine_recolour,
             refine_swaps: self.refine_swaps,
+            refine_blocks: self.refine_blocks,
+            refine_simplify_z: self.refine_simplify_z,
             refine_retest_z: self.refine_retest_z,
             ..JobSpec::default()
         }

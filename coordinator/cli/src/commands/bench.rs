@@ -210,6 +210,12 @@ pub struct QualityRow {
     pub wrong_pixels: Option<usize>,
     pub wrong_told: Option<usize>,
     pub wrong_untold: Option<usize>,
+    /// The map found's one-pixel changes on the check's photons: how many beat it by 2 paired
+    /// standard errors (0: a local optimum of single-pixel changes, only larger moves leave
+    /// it), how many of those set a pixel to the truth's material, and the best one's z.
+    pub escapes: Option<usize>,
+    pub escapes_toward_truth: Option<usize>,
+    pub escape_best_z: Option<f64>,
     /// The refinement's sweeps, the changes they tried, and of those the ones a differential
     /// render estimated (each would be a render of its own with direct screening).
     pub sweeps: usize,
@@ -360,7 +366,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
     let mut rows = Vec::new();
     eprintln!(
-        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9} {:>8} {:>12}",
+        "{:<10} {:>5} {:>9} {:>8} {:>9} {:>10} {:>8} {:>14} {:>9} {:>8} {:>12} {:>8}",
         "scene",
         "seed",
         "accuracy",
@@ -371,7 +377,8 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
         "photons",
         "seconds",
         "truth z",
-        "wrong (told)"
+        "wrong (told)",
+        "escapes"
     );
     let mut config = None;
     for &seed in &args.seeds {
@@ -392,6 +399,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
             )
             .with_context(|| format!("{scene}, seed {seed}"))?;
             let neighbours = check.as_ref().and_then(|c| c.neighbours.as_ref());
+            let escapes = check.as_ref().and_then(|c| c.escapes.as_ref());
             let row = QualityRow {
                 scene: scene.clone(),
                 seed,
@@ -412,6 +420,9 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 wrong_pixels: neighbours.map(|n| n.wrong.len()),
                 wrong_told: neighbours.map(|n| n.wrong_resolved()),
                 wrong_untold: neighbours.map(|n| n.wrong_unresolved()),
+                escapes: escapes.map(|e| e.beating),
+                escapes_toward_truth: escapes.map(|e| e.toward_truth),
+                escape_best_z: escapes.and_then(|e| e.best_z),
                 sweeps: report.refinement.len(),
                 changes_tried: report.refinement.iter().map(|s| u64::from(s.tried)).sum(),
                 changes_reweighted: report
@@ -421,7 +432,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                     .sum(),
             };
             eprintln!(
-                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1} {:>12}",
+                "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1} {:>12} {:>8}",
                 row.scene,
                 seed,
                 row.pixel_accuracy.unwrap_or(f64::NAN) * 100.0,
@@ -434,6 +445,10 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                 row.truth_margin_z.unwrap_or(f64::NAN),
                 match (row.wrong_pixels, row.wrong_told) {
                     (Some(w), Some(t)) => format!("{w} ({t})"),
+                    _ => "-".to_string(),
+                },
+                match (row.escapes, row.escapes_toward_truth) {
+                    (Some(e), Some(t)) => format!("{e} ({t})"),
                     _ => "-".to_string(),
                 }
             );

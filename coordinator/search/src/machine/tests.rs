@@ -703,6 +703,8 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         direct_photons: None,
         retest_z: None,
         swap_pixels: false,
+        blocks: false,
+        simplify_z: None,
     };
     let config = SearchConfig {
         grid: 4,
