@@ -135,7 +135,8 @@ pub struct JobSpec {
     /// different materials, moving one object pixel at a time (likelihood: false).
     pub refine_swaps: Option<bool>,
     /// Whether refinement sweeps also set each 2 × 2 block and each pair of neighbouring
-    /// pixels wholly to each candidate material (likelihood: false).
+    /// pixels wholly to each candidate material, and grow or shrink each object's sides by one
+    /// row or column (likelihood: false).
     pub refine_blocks: Option<bool>,
     /// Where refinement would end, a simplification round first: every non-background
     /// pixel and region set to the background unless that loses by more than this many paired

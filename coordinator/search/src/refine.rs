@@ -89,7 +89,8 @@ pub struct RefineConfig {
     /// change moves the counts about twice as far as one pixel against about √2 times the
     /// noise, so it clears `z` where each of its pixels alone does not, and it leaves the
     /// local optima where one pixel alone cannot improve (an object found one pixel too thin
-    /// and one pixel off).
+    /// and one pixel off). With them, each object's bounding box grown or shrunk by one row
+    /// or column on each side.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub blocks: bool,
     /// Where the stage would end, a **simplification** round first: a sweep of every
@@ -807,6 +808,7 @@ impl Refinement {
             (self.config.recolour_regions, Self::recolours),
             (self.config.swap_pixels, Self::swaps),
             (self.config.blocks, Self::blocks),
+            (self.config.blocks, Self::object_sides),
         ];
         for (on, changes) in more {
             if !on {
@@ -875,6 +877,61 @@ impl Refinement {
                             out.push(Change { pixels: changed });
                         }
                     }
+                }
+            }
+        }
+        out
+    }
+
+    /// Each object (as [`Self::object_moves`] finds them) grown by the row or column just
+    /// outside each side of its bounding box, over the box's span, and shrunk by its outermost
+    /// row or column on each side (its pixels there set to the background): a rectangle found
+    /// one row too thin or too wide is then one change, with the signal of the whole row.
+    fn object_sides(&self) -> Vec<Change> {
+        let n = self.grid as usize;
+        let background = self.background();
+        let mut out = Vec::new();
+        for (m, pixels) in self.regions() {
+            if m == background || pixels.len() * 2 > self.current.len() {
+                continue;
+            }
+            let ys = pixels.iter().map(|&p| p / n);
+            let xs = pixels.iter().map(|&p| p % n);
+            let (y0, y1) = (ys.clone().min().unwrap_or(0), ys.max().unwrap_or(0));
+            let (x0, x1) = (xs.clone().min().unwrap_or(0), xs.max().unwrap_or(0));
+            let row = |y: usize| (x0..=x1).map(move |x| y * n + x).collect::<Vec<_>>();
+            let column = |x: usize| (y0..=y1).map(move |y| y * n + x).collect::<Vec<_>>();
+            let mut grow = Vec::new();
+            if y0 > 0 {
+                grow.push(row(y0 - 1));
+            }
+            if y1 + 1 < n {
+                grow.push(row(y1 + 1));
+            }
+            if x0 > 0 {
+                grow.push(column(x0 - 1));
+            }
+            if x1 + 1 < n {
+                grow.push(column(x1 + 1));
+            }
+            let shrink = [row(y0), row(y1), column(x0), column(x1)];
+            for line in grow {
+                let change: Vec<(u32, u16)> = line
+                    .into_iter()
+                    .filter(|&p| self.current[p] != m)
+                    .map(|p| (p as u32, m))
+                    .collect();
+                out.push(Change { pixels: change });
+            }
+            for line in shrink {
+                let change: Vec<(u32, u16)> = line
+                    .into_iter()
+                    .filter(|p| pixels.binary_search(p).is_ok())
+                    .map(|p| (p as u32, background))
+                    .collect();
+                // Shrinking a line of the box away entirely is the object cleared or split.
+                if change.len() < pixels.len() {
+                    out.push(Change { pixels: change });
                 }
             }
         }
@@ -1726,6 +1783,40 @@ mod tests {
     }
 
     #[test]
+    fn object_sides_grow_and_shrink_each_side_of_an_object() {
+        // A 1 × 2 object (pixels 5 and 6) in a 4 × 4 map.
+        let mut start = vec![0u16; 16];
+        start[5] = 1;
+        start[6] = 1;
+        let r = Refinement::new(
+            RefineConfig {
+                blocks: true,
+                ..config()
+            },
+            4,
+            vec![0, 1],
+            1,
+            start,
+            Vec::new(),
+            Vec::new(),
+        );
+        let sides: Vec<Vec<(u32, u16)>> = r.object_sides().into_iter().map(|c| c.pixels).collect();
+        // Grown up, down, left and right; shrunk from the left and the right (shrinking its
+        // only row would clear it).
+        assert_eq!(
+            sides,
+            vec![
+                vec![(1, 1), (2, 1)],
+                vec![(9, 1), (10, 1)],
+                vec![(4, 1)],
+                vec![(7, 1)],
+                vec![(5, 0)],
+                vec![(6, 0)],
+            ]
+        );
+    }
+
+    #[test]
     fn blocks_set_two_by_two_blocks_and_pairs_wholly_to_each_material() {
         // A 3 × 3 map, all background but pixel 4 (the centre): 4 blocks and 12 pairs.
         let mut start = vec![0u16; 9];
@@ -1760,7 +1851,9 @@ mod tests {
         assert_eq!(blocks[0].pixels, vec![(0, 1), (1, 1), (3, 1)]);
         assert!(blocks.iter().any(|c| c.pixels == vec![(6, 1), (7, 1)]));
         assert!(blocks.iter().any(|c| c.pixels == vec![(2, 1), (5, 1)]));
-        // A sweep tries them all after the single pixels; without the option it does not.
+        // A sweep tries them all after the single pixels (the one-pixel object's sides add
+        // nothing: grown, each is a single pixel already listed; shrunk, it would be cleared);
+        // without the option it does not.
         let tried = |config: RefineConfig| {
             Refinement::new(
                 config,

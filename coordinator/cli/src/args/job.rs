@@ -164,9 +164,10 @@ pub struct JobArgs {
     #[arg(long, value_name = "BOOL")]
     pub refine_swaps: Option<bool>,
     /// Whether refinement sweeps also set each 2 × 2 block and each pair of neighbouring
-    /// pixels (side by side or one above the other) wholly to each candidate material: an
-    /// object's edge grown, shrunk or shifted by two pixels at once, with about twice a
-    /// single pixel's signal over its noise (likelihood: false).
+    /// pixels (side by side or one above the other) wholly to each candidate material, and
+    /// each object's bounding box grown or shrunk by one row or column on each side: an
+    /// object's edge grown, shrunk or shifted several pixels at once, with their signal
+    /// together (likelihood: false).
     #[arg(long, value_name = "BOOL")]
     pub refine_blocks: Option<bool>,
     /// Where refinement would end, a simplification round first: every pixel and region not
