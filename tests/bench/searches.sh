@@ -12,6 +12,7 @@
 #   wholly to each material in the sweeps.
 # likelihood-differential-direct8-simplify: direct8 with simplification rounds at 1 paired
 #   standard error where the stage would end.
+# likelihood-differential-direct8-blocks-simplify: direct8 with both.
 # paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
 # anything else: `--search NAME` with its defaults.
 search_flags() {
@@ -39,6 +40,11 @@ search_flags() {
       flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800 --set refine_simplify_z=1) ;;
+    likelihood-differential-direct8-blocks-simplify)
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set refine_blocks=true
+             --set refine_simplify_z=1) ;;
     paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
     *) flags=(--search "$1") ;;
   esac

@@ -98,8 +98,10 @@ pub struct RefineConfig {
     /// candidate, and a confirmation's option wins, unless it loses to the current map by
     /// more than this many paired standard errors. What the target cannot tell from the
     /// background becomes the background (an opaque pixel deep inside a tunnel that no photon
-    /// reaches); what it can stays. After a round that changes the map, sweeps go on; the
-    /// stage ends after a round that changes nothing, or [`MAX_SIMPLIFICATIONS`] rounds.
+    /// reaches); what it can stays. The first round comes before any escalation, later ones
+    /// after the last. After a round that changes the map, sweeps go on; after one that
+    /// changes nothing, the stage goes on as without it; [`MAX_SIMPLIFICATIONS`] rounds at
+    /// most.
     /// `None`: no simplification.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simplify_z: Option<f64>,
@@ -346,6 +348,10 @@ pub struct Refinement {
     /// Simplification rounds so far.
     #[serde(default, skip_serializing_if = "is_zero")]
     simplifications: u32,
+    /// The map of the last simplification round that changed nothing (none is run on it
+    /// again).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    simplified: Option<Vec<u16>>,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -405,6 +411,7 @@ impl Refinement {
             reach: None,
             simplifying: false,
             simplifications: 0,
+            simplified: None,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -667,20 +674,23 @@ impl Refinement {
             .collect()
     }
 
-    /// Doubles the photons and starts the next sweep, or starts a simplification round, or
-    /// ends the stage when it may do neither.
+    /// Where the stage would end: a simplification round first (at the photons of the time:
+    /// the first round comes before any escalation, where sweeps are cheapest), else doubles
+    /// the photons and starts the next sweep, else a later simplification round, else the end.
     fn escalate_or_end(&mut self) {
-        if self.escalation < self.config.escalations {
-            self.escalation += 1;
-            self.stalls = 0;
-            self.sweep += 1;
-            self.emit_sweep();
-        } else if self.config.simplify_z.is_some()
+        let may_simplify = self.config.simplify_z.is_some()
             && self.simplifications < MAX_SIMPLIFICATIONS
             && self.sweep + 1 < self.config.max_sweeps
+            && self.simplified.as_ref() != Some(&self.current);
+        if may_simplify && (self.simplifications == 0 || self.escalation >= self.config.escalations)
         {
             self.simplifications += 1;
             self.simplifying = true;
+            self.stalls = 0;
+            self.sweep += 1;
+            self.emit_sweep();
+        } else if self.escalation < self.config.escalations {
+            self.escalation += 1;
             self.stalls = 0;
             self.sweep += 1;
             self.emit_sweep();
@@ -1231,10 +1241,10 @@ impl Refinement {
                 simplification: self.simplifying,
             });
             if self.simplifying {
-                self.end();
-            } else {
-                self.escalate_or_end();
+                self.simplifying = false;
+                self.simplified = Some(self.current.clone());
             }
+            self.escalate_or_end();
             return;
         }
         let mut combined = self.current.clone();
@@ -1405,10 +1415,13 @@ impl Refinement {
             }
         }
         if self.simplifying {
-            // A round that changed the map: sweeps go on from it; one that did not: the end.
+            // A round that changed the map: sweeps go on from it; one that did not: as where
+            // the stage would have ended without it (escalate, or end).
             self.simplifying = false;
             if self.stalls > 0 {
-                self.end();
+                self.stalls = 0;
+                self.simplified = Some(self.current.clone());
+                self.escalate_or_end();
                 return;
             }
         } else if self.stalls >= 2 {
@@ -1488,9 +1501,31 @@ mod tests {
         opaque: Vec<bool>,
         score_of: &dyn Fn(&[u16], u64, u32) -> Scored,
     ) -> Refinement {
+        run_traced(
+            config,
+            start,
+            materials,
+            reweightable,
+            opaque,
+            score_of,
+            &mut |_| {},
+        )
+    }
+
+    /// [`run_scored`], handing each step's state to `on_step` before its scores.
+    fn run_traced(
+        config: RefineConfig,
+        start: Vec<u16>,
+        materials: Vec<u16>,
+        reweightable: Vec<Vec<bool>>,
+        opaque: Vec<bool>,
+        score_of: &dyn Fn(&[u16], u64, u32) -> Scored,
+        on_step: &mut dyn FnMut(&Refinement),
+    ) -> Refinement {
         let mut r = Refinement::new(config, 4, materials, 1, start, reweightable, opaque);
         let mut steps = 0;
         while !r.is_finished() {
+            on_step(&r);
             let scored: Vec<(Scored, Vec<Option<ChangeScore>>)> = r
                 .pending()
                 .iter()
@@ -1584,6 +1619,27 @@ mod tests {
         // A second round, on the simplified map, changes nothing and ends the stage.
         assert_eq!(rounds.last().map(|h| h.changed), Some(0));
         assert!(rounds.len() <= MAX_SIMPLIFICATIONS as usize);
+        // With an escalation, the first round comes before it, at the sweep's photons, and
+        // a later round after it.
+        let mut rounds = Vec::new();
+        run_traced(
+            RefineConfig {
+                simplify_z: Some(1.0),
+                escalations: 1,
+                ..config()
+            },
+            start.clone(),
+            vec![0, 1],
+            Vec::new(),
+            Vec::new(),
+            &score,
+            &mut |r| {
+                if r.simplifying && matches!(r.waiting, Some(Waiting::Sweep { .. })) {
+                    rounds.push(r.pending()[0].photons);
+                }
+            },
+        );
+        assert_eq!(rounds, vec![100, 200]);
         // A negative z would clear what loses: refused.
         assert!(RefineConfig {
             simplify_z: Some(-1.0),
