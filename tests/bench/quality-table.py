@@ -15,8 +15,14 @@ runs_of = {}
 for f in files:
     d = json.loads(f.read_text())
     name = d["search"]
-    if "refine_screen=differential" in d.get("set", []):
-        name += "-differential"
+    settings = d.get("set", [])
+    # The recipe's name as searches.sh spells it, from the settings that differ.
+    for key, part in [("refine_screen=differential", "differential"),
+                      ("refine_direct_photons=12800", "direct8"), ("refine_z=2", "z2"),
+                      ("refine_swaps=true", "swaps"), ("refine_blocks=true", "blocks"),
+                      ("refine_simplify_z=1", "simplify")]:
+        if key in settings:
+            name += "-" + part
     for r in d["runs"]:
         runs_of.setdefault((r["scene"], name), []).append(r)
 rows = []

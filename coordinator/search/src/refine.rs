@@ -98,8 +98,8 @@ pub struct RefineConfig {
     /// candidate, and a confirmation's option wins, unless it loses to the current map by
     /// more than this many paired standard errors. What the target cannot tell from the
     /// background becomes the background (an opaque pixel deep inside a tunnel that no photon
-    /// reaches); what it can stays. The first round comes before any escalation, later ones
-    /// after the last. After a round that changes the map, sweeps go on; after one that
+    /// reaches); what it can stays. Rounds come after the last escalation, at its photons.
+    /// After a round that changes the map, sweeps go on; after one that
     /// changes nothing, the stage goes on as without it; [`MAX_SIMPLIFICATIONS`] rounds at
     /// most.
     /// `None`: no simplification.
@@ -674,16 +674,16 @@ impl Refinement {
             .collect()
     }
 
-    /// Where the stage would end: a simplification round first (at the photons of the time:
-    /// the first round comes before any escalation, where sweeps are cheapest), else doubles
-    /// the photons and starts the next sweep, else a later simplification round, else the end.
+    /// Where the stage would end: doubles the photons and starts the next sweep, else (after
+    /// the last escalation, where the photons tell most) a simplification round, else the end.
+    /// (A first round before any escalation, where sweeps are cheapest, ended fig7k lower in
+    /// the one run measured, `docs/model.md`.)
     fn escalate_or_end(&mut self) {
         let may_simplify = self.config.simplify_z.is_some()
             && self.simplifications < MAX_SIMPLIFICATIONS
             && self.sweep + 1 < self.config.max_sweeps
             && self.simplified.as_ref() != Some(&self.current);
-        if may_simplify && (self.simplifications == 0 || self.escalation >= self.config.escalations)
-        {
+        if may_simplify && self.escalation >= self.config.escalations {
             self.simplifications += 1;
             self.simplifying = true;
             self.stalls = 0;
@@ -1619,8 +1619,7 @@ mod tests {
         // A second round, on the simplified map, changes nothing and ends the stage.
         assert_eq!(rounds.last().map(|h| h.changed), Some(0));
         assert!(rounds.len() <= MAX_SIMPLIFICATIONS as usize);
-        // With an escalation, the first round comes before it, at the sweep's photons, and
-        // a later round after it.
+        // With an escalation, rounds come after it, at its doubled photons.
         let mut rounds = Vec::new();
         run_traced(
             RefineConfig {
@@ -1639,7 +1638,10 @@ mod tests {
                 }
             },
         );
-        assert_eq!(rounds, vec![100, 200]);
+        assert!(
+            !rounds.is_empty() && rounds.iter().all(|&p| p == 200),
+            "{rounds:?}"
+        );
         // A negative z would clear what loses: refused.
         assert!(RefineConfig {
             simplify_z: Some(-1.0),
