@@ -153,8 +153,15 @@ pub fn check(
     };
     let (t, f) = (score(&truth)?, score(found)?);
     let (margin, std_error) = paired(&t.blocks, &f.blocks).context("too few observations")?;
-    let neighbours = neighbours(scoring, engine, &table, &truth, found, seed, photons, &t)?;
-    let escapes = escapes(scoring, engine, &table, &truth, found, seed, photons, &f)?;
+    let probe = Probe {
+        scoring,
+        engine,
+        table: &table,
+        seed,
+        photons,
+    };
+    let neighbours = neighbours(&probe, &truth, found, &t)?;
+    let escapes = escapes(&probe, &truth, found, &f)?;
     Ok(Some(TruthCheck {
         photons,
         margin,
@@ -164,21 +171,26 @@ pub fn check(
     }))
 }
 
-/// The truth's one-pixel neighbours against the truth (whose plain deviance on the same seed
-/// and photons is `truth_score`); `None` when the engine does not render differentially.
-#[allow(clippy::too_many_arguments)]
-fn neighbours(
-    scoring: &Scoring,
-    engine: &dyn Engine,
-    table: &[scatterfarm_model::Material],
-    truth: &[u16],
-    found: &[u16],
+/// What the check renders with: the target's scoring, the engine and table, and the seed and
+/// photons per source of its renders.
+struct Probe<'a> {
+    scoring: &'a Scoring,
+    engine: &'a dyn Engine,
+    table: &'a [scatterfarm_model::Material],
     seed: u64,
     photons: u32,
+}
+
+/// The truth's one-pixel neighbours against the truth (whose plain deviance on the probe's
+/// seed and photons is `truth_score`); `None` when the engine does not render differentially.
+fn neighbours(
+    probe: &Probe,
+    truth: &[u16],
+    found: &[u16],
     truth_score: &likelihood::Deviance,
 ) -> Result<Option<Neighbours>> {
-    let Some(one_pixel) = one_pixel_z(scoring, engine, table, truth, seed, photons, truth_score)
-        .context("the truth's neighbours")?
+    let Some(one_pixel) =
+        one_pixel_z(probe, truth, truth_score).context("the truth's neighbours")?
     else {
         return Ok(None);
     };
@@ -200,19 +212,14 @@ fn neighbours(
 
 /// The found map's one-pixel changes against it (whose plain deviance is `found_score`):
 /// those that beat it, and those of them that set a pixel to the truth's material.
-#[allow(clippy::too_many_arguments)]
 fn escapes(
-    scoring: &Scoring,
-    engine: &dyn Engine,
-    table: &[scatterfarm_model::Material],
+    probe: &Probe,
     truth: &[u16],
     found: &[u16],
-    seed: u64,
-    photons: u32,
     found_score: &likelihood::Deviance,
 ) -> Result<Option<Escapes>> {
-    let Some(one_pixel) = one_pixel_z(scoring, engine, table, found, seed, photons, found_score)
-        .context("the found map's neighbours")?
+    let Some(one_pixel) =
+        one_pixel_z(probe, found, found_score).context("the found map's neighbours")?
     else {
         return Ok(None);
     };
@@ -247,17 +254,20 @@ struct OnePixel {
     not_estimated: usize,
 }
 
-/// [`OnePixel`] of `map` (whose plain deviance on `seed` and `photons` is `map_score`);
-/// `None` when the engine does not render differentially.
+/// [`OnePixel`] of `map` (whose plain deviance on the probe's seed and photons is
+/// `map_score`); `None` when the engine does not render differentially.
 fn one_pixel_z(
-    scoring: &Scoring,
-    engine: &dyn Engine,
-    table: &[scatterfarm_model::Material],
+    probe: &Probe,
     map: &[u16],
-    seed: u64,
-    photons: u32,
     map_score: &likelihood::Deviance,
 ) -> Result<Option<OnePixel>> {
+    let Probe {
+        scoring,
+        engine,
+        table,
+        seed,
+        photons,
+    } = *probe;
     let materials = table.len() as u16;
     let all: Vec<Change> = (0..map.len() as u32)
         .flat_map(|p| {
