@@ -1437,6 +1437,11 @@ impl Refinement {
 mod tests {
     use super::*;
 
+    /// A refinement over materials 0 and 1 (job seed 1), knowing nothing of reweighting.
+    fn two_materials(config: RefineConfig, grid: u32, start: Vec<u16>) -> Refinement {
+        Refinement::new(config, grid, vec![0, 1], 1, start, Vec::new(), Vec::new())
+    }
+
     fn config() -> RefineConfig {
         RefineConfig {
             photons: 100,
@@ -1773,15 +1778,7 @@ mod tests {
         for p in [5, 6, 9, 10] {
             start[p] = 1;
         }
-        let r = Refinement::new(
-            config(),
-            4,
-            vec![0, 1],
-            1,
-            start.clone(),
-            Vec::new(),
-            Vec::new(),
-        );
+        let r = two_materials(config(), 4, start.clone());
         let right = r
             .object_moves()
             .into_iter()
@@ -1800,15 +1797,7 @@ mod tests {
             move_objects: false,
             ..config()
         };
-        let r = Refinement::new(
-            swapping.clone(),
-            4,
-            vec![0, 1],
-            1,
-            start.clone(),
-            Vec::new(),
-            Vec::new(),
-        );
+        let r = two_materials(swapping.clone(), 4, start.clone());
         let swaps = r.swaps();
         assert_eq!(swaps.len(), 8);
         for c in &swaps {
@@ -1820,19 +1809,7 @@ mod tests {
         }
         assert!(swaps.iter().any(|c| c.pixels == vec![(5, 0), (10, 1)]));
         // A sweep tries them after the single pixels; without the option it does not.
-        let tried = |config: RefineConfig| {
-            Refinement::new(
-                config,
-                4,
-                vec![0, 1],
-                1,
-                start.clone(),
-                Vec::new(),
-                Vec::new(),
-            )
-            .changes()
-            .len()
-        };
+        let tried = |config: RefineConfig| two_materials(config, 4, start.clone()).changes().len();
         let plain = RefineConfig {
             move_objects: false,
             ..config()
@@ -1884,15 +1861,7 @@ mod tests {
             move_objects: false,
             ..config()
         };
-        let r = Refinement::new(
-            blocking.clone(),
-            3,
-            vec![0, 1],
-            1,
-            start.clone(),
-            Vec::new(),
-            Vec::new(),
-        );
+        let r = two_materials(blocking.clone(), 3, start.clone());
         let blocks = r.blocks();
         // To material 1 every block and pair changes, except the pairs through the centre
         // (one pixel each); to material 0 none changes two pixels.
@@ -1912,19 +1881,7 @@ mod tests {
         // A sweep tries them all after the single pixels (the one-pixel object's sides add
         // nothing: grown, each is a single pixel already listed; shrunk, it would be cleared);
         // without the option it does not.
-        let tried = |config: RefineConfig| {
-            Refinement::new(
-                config,
-                3,
-                vec![0, 1],
-                1,
-                start.clone(),
-                Vec::new(),
-                Vec::new(),
-            )
-            .changes()
-            .len()
-        };
+        let tried = |config: RefineConfig| two_materials(config, 3, start.clone()).changes().len();
         let plain = RefineConfig {
             move_objects: false,
             ..config()
@@ -1934,15 +1891,7 @@ mod tests {
 
     #[test]
     fn requests_share_a_seed_within_a_sweep_and_sweeps_differ() {
-        let r = Refinement::new(
-            config(),
-            4,
-            vec![0, 1],
-            1,
-            vec![0; 16],
-            Vec::new(),
-            Vec::new(),
-        );
+        let r = two_materials(config(), 4, vec![0; 16]);
         let seeds: BTreeSet<u64> = r.pending().iter().map(|p| p.seed).collect();
         assert_eq!(seeds.len(), 1);
         assert_eq!(r.pending().len(), 17);
