@@ -364,3 +364,62 @@ fn the_quality_bench_takes_scene_paths_and_checks_the_truth() {
         "{run}"
     );
 }
+
+#[test]
+fn a_differential_search_on_an_engine_that_cannot_render_it_runs_on_the_cpu_engine() {
+    // The GPU engine does not render differentially: asked for, it would fail when the
+    // refinement starts, after the levels' work.
+    let dir = tempfile::tempdir().unwrap();
+    let ran = scatterfarm_in(
+        &[
+            "reconstruct",
+            "--engine",
+            "gpu",
+            "--scene",
+            "demo8",
+            "--search",
+            "likelihood",
+            "--refine-screen",
+            "differential",
+            "--iterations",
+            "1",
+            "--photons-per-iteration",
+            "256",
+            "--permutations",
+            "1",
+            "--refine-photons",
+            "512",
+            "--refine-confirm-photons",
+            "1024",
+            "--refine-sweeps",
+            "1",
+            "--positions",
+            "4",
+            "--directions",
+            "1",
+            "--out",
+            "out",
+        ],
+        dir.path(),
+    );
+    if !ran.status.success() && ran.stderr.contains("cannot start the GPU engine") {
+        crate::harness::gating::skip_or_fail(
+            "a_differential_search_on_an_engine_that_cannot_render_it_runs_on_the_cpu_engine",
+            "no Vulkan adapter",
+            "install mesa-vulkan-drivers",
+        );
+        return;
+    }
+    ran.ok();
+    assert!(
+        ran.stderr.contains("does not render differentially")
+            && ran.stderr.contains("the CPU engine renders this job"),
+        "{}",
+        ran.stderr
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("out/report.json")).unwrap())
+            .unwrap();
+    let engine = report["engine"].as_str().unwrap_or_default();
+    assert!(engine.starts_with("cpu"), "{report:#}");
+}

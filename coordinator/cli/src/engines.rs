@@ -4,7 +4,9 @@ use anyhow::{ensure, Context, Result};
 use clap::ValueEnum;
 use scatterfarm_engines::gpu::{AdapterSelector, GpuEngine};
 use scatterfarm_engines::CpuEngine;
+use scatterfarm_job::plan::Plan;
 use scatterfarm_model::Engine;
+use scatterfarm_search::refine::Screen;
 
 /// The `--engine` choices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -33,6 +35,31 @@ impl EngineArgs {
     pub fn open(&self) -> Result<Box<dyn Engine>> {
         open(self.engine, self.adapter.as_deref())
     }
+
+    /// The chosen engine for renders of `plan`: where its search renders differentially and
+    /// the chosen engine cannot (the GPU engine, today), the CPU engine, said in a warning,
+    /// so the job does not fail when its refinement starts.
+    pub fn open_for(&self, plan: &Plan) -> Result<Box<dyn Engine>> {
+        let engine = self.open()?;
+        if renders_differentially(plan) && !engine.renders_differentially() {
+            tracing::warn!(
+                "engine {} does not render differentially (refine_screen = \"differential\"); \
+                 the CPU engine renders this job",
+                engine.fingerprint().key()
+            );
+            return Ok(Box::new(CpuEngine::new()));
+        }
+        Ok(engine)
+    }
+}
+
+/// Whether `plan`'s search makes differential renders.
+pub fn renders_differentially(plan: &Plan) -> bool {
+    plan.search
+        .config()
+        .refine
+        .as_ref()
+        .is_some_and(|r| r.screen == Screen::Differential)
 }
 
 /// The engine for `choice`; `adapter` (an index or part of a name, see `scatterfarm adapters`)

@@ -7,7 +7,7 @@ mod common;
 
 use scatterfarm_coordinator::job::JobState;
 use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
-use scatterfarm_coordinator::store::MemoryStore;
+use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::Engine;
@@ -24,7 +24,8 @@ fn differential_renders_go_whole_to_workers_that_render_them_and_their_scores_ar
         task_seconds: 0.02,
         ..Settings::default()
     };
-    let mut s = Scheduler::open(Arc::new(MemoryStore::new()), settings).unwrap();
+    let store = Arc::new(MemoryStore::new());
+    let mut s = Scheduler::open(store.clone(), settings).unwrap();
     let (_, inputs) = common::job();
     let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
     let id = s.submit(spec, inputs).unwrap();
@@ -100,4 +101,12 @@ fn differential_renders_go_whole_to_workers_that_render_them_and_their_scores_ar
     let report: serde_json::Value =
         serde_json::from_slice(&job.outputs().unwrap()["report.json"]).unwrap();
     assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
+    // The store kept the scores of the last stages only: level 0's (step 0) are gone.
+    let stored = store.scores(&id).unwrap();
+    let renders = report["renders"].as_u64().unwrap();
+    assert!(
+        (stored.len() as u64) < renders && stored.values().all(|(_, step)| *step > 0),
+        "{} scores stored for {renders} renders",
+        stored.len()
+    );
 }

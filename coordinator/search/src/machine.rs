@@ -318,6 +318,12 @@ pub struct Search {
     /// ([`crate::convergence`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     spent: Vec<crate::convergence::Spent>,
+    /// The index of the current stage's first request ([`Search::stage_start`]).
+    #[serde(default)]
+    stage_start: u64,
+    /// The refinement sweep the current stage is (`None` before refinement).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    stage_sweep: Option<u32>,
 }
 
 impl Search {
@@ -360,6 +366,8 @@ impl Search {
             refined: None,
             finished: false,
             spent: Vec::new(),
+            stage_start: 0,
+            stage_sweep: None,
         };
         let candidates = search.level_candidates(0, &[])?;
         // Level 0 is one step over one region (the whole medium) from a map that every
@@ -413,6 +421,14 @@ impl Search {
         } else {
             None
         }
+    }
+
+    /// The index of the first request of the current stage: a level, or a refinement sweep
+    /// with its confirmation. Every render seed of a stage is its own (a level's seed, a
+    /// sweep's, or a request's index), so no later request has the identity of one made
+    /// before this index: their scores may be forgotten ([`crate::steps`] does).
+    pub fn stage_start(&self) -> u64 {
+        self.stage_start
     }
 
     /// The refinement stage, once it has started.
@@ -827,6 +843,7 @@ impl Search {
             finals: Vec::new(),
             early_base: None,
         });
+        self.stage_start = self.next_request;
         self.start_permutation();
         Ok(())
     }
@@ -1100,6 +1117,10 @@ impl Search {
             });
             self.finish();
             return;
+        }
+        if self.stage_sweep != Some(r.sweep()) {
+            self.stage_sweep = Some(r.sweep());
+            self.stage_start = self.next_request;
         }
         let requests = r.pending().to_vec();
         self.emit_requests(requests, Waiting::Refine);

@@ -439,6 +439,11 @@ impl Refinement {
         &self.history
     }
 
+    /// The number of the current sweep: its renders' seeds derive from it.
+    pub fn sweep(&self) -> u32 {
+        self.sweep
+    }
+
     /// How many sweeps have ended: confirmed (or found nothing to confirm).
     pub fn sweeps_done(&self) -> usize {
         let confirming = matches!(self.waiting, Some(Waiting::Confirm { .. }));

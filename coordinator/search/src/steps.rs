@@ -12,6 +12,13 @@
 //! What the search consumed is derived from the score cache alone (which step each score was
 //! rendered for), so a driver restored from stored scores counts exactly what one left alone
 //! does.
+//!
+//! The cache holds one stage's scores: when the search moves to a new stage (a level, or a
+//! refinement sweep, [`Search::stage_start`]) the scores of steps before it are forgotten, since
+//! no later request can have their identities (a differential render's scores are about 1 MB,
+//! so a long refinement would otherwise grow without end). What is kept is a function of the
+//! stage alone, so a driver restored mid-stage from every stored score keeps what one left
+//! alone does, and counts the same.
 
 use crate::driver::{Consumption, Scoring};
 use crate::identity::{identity, Identity};
@@ -72,6 +79,11 @@ pub struct Steps {
     /// contender renders from photon 0, to the same counts).
     prefixes: Prefixes,
     prefix_level: u32,
+    /// The stage start the cache was last pruned to.
+    pruned_to: u64,
+    /// Whether earlier stages' scores are forgotten (off only in tests that measure that
+    /// forgetting them changes nothing).
+    forget: bool,
 }
 
 impl Steps {
@@ -88,6 +100,28 @@ impl Steps {
             scores: scores.into_iter().collect(),
             prefixes: Prefixes::new(DEFAULT_BYTES),
             prefix_level: 0,
+            pruned_to: 0,
+            forget: true,
+        }
+    }
+
+    /// Scores held now.
+    pub fn cached(&self) -> usize {
+        self.scores.len()
+    }
+
+    /// Keeps every score, of every stage (for tests comparing against the bounded cache).
+    #[cfg(test)]
+    pub(crate) fn keep_every_stage(&mut self) {
+        self.forget = false;
+    }
+
+    /// Forgets the scores of steps before the search's current stage.
+    fn prune(&mut self, search: &Search) {
+        let start = search.stage_start();
+        if self.forget && start > self.pruned_to {
+            self.scores.retain(|_, (_, step)| *step >= start);
+            self.pruned_to = start;
         }
     }
 
@@ -119,6 +153,7 @@ impl Steps {
         if search.is_finished() {
             return Ok(Next::Finished);
         }
+        self.prune(search);
         let level = search.progress().level;
         if level != self.prefix_level {
             self.prefixes.clear();
@@ -223,6 +258,7 @@ impl Steps {
         search.submit_scores(&scores)?;
         used.requests += pending.len() as u64;
         search.note_spent(used);
+        self.prune(search);
         Ok(Next::Submitted)
     }
 
@@ -378,3 +414,6 @@ pub fn differential_identity(plain: &Identity, changes: &[Change]) -> Identity {
     }
     h.finalize().into()
 }
+
+#[cfg(test)]
+mod tests;

@@ -356,13 +356,19 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
     });
     anyhow::ensure!(!args.seeds.is_empty(), "--seeds: give at least one seed");
     // Every parameter set is checked before the first (long) run.
+    let mut plans = Vec::new();
     for scene in &scenes {
         let params = args.params(scene, args.seeds[0])?;
         let inputs = scatterfarm_job::inputs::Inputs::gather(&params, std::path::Path::new("."))?;
-        scatterfarm_job::plan::Plan::resolve(&params, &inputs)
-            .with_context(|| format!("scene {scene}"))?;
+        plans.push(
+            scatterfarm_job::plan::Plan::resolve(&params, &inputs)
+                .with_context(|| format!("scene {scene}"))?,
+        );
     }
-    let engine = args.engine.open()?;
+    let engine = match plans.iter().find(|p| engines::renders_differentially(p)) {
+        Some(plan) => args.engine.open_for(plan)?,
+        None => args.engine.open()?,
+    };
     let scratch = tempfile::tempdir().context("cannot create a scratch folder")?;
     let mut rows = Vec::new();
     eprintln!(

@@ -114,16 +114,9 @@ pub fn run_embedded(
     http: Option<SocketAddr>,
 ) -> Result<Report> {
     let inputs = Inputs::gather(params, Path::new("."))?;
-    scatterfarm_job::plan::Plan::resolve(params, &inputs)?;
-    let mut engine: Arc<dyn scatterfarm_model::Engine> = Arc::from(engine.open()?);
-    if params.refine_screen == Some(Screen::Differential) && !engine.renders_differentially() {
-        // The job's differential renders go only to engines that render them.
-        eprintln!(
-            "engine {} does not render differentially; the embedded worker runs the CPU engine",
-            engine.fingerprint().key()
-        );
-        engine = Arc::new(scatterfarm_engines::cpu::CpuEngine::new());
-    }
+    let plan = scatterfarm_job::plan::Plan::resolve(params, &inputs)?;
+    // The job's differential renders go only to engines that render them.
+    let engine: Arc<dyn scatterfarm_model::Engine> = Arc::from(engine.open_for(&plan)?);
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

@@ -159,8 +159,8 @@ pub fn run(args: ReconstructArgs) -> Result<()> {
         None => {
             // Every check that needs no engine runs before the adapter starts.
             let inputs = Inputs::gather(&spec, Path::new("."))?;
-            Plan::resolve(&spec, &inputs)?;
-            let engine = args.engine.open()?;
+            let plan = Plan::resolve(&spec, &inputs)?;
+            let engine = args.engine.open_for(&plan)?;
             run_in_process(&spec, engine.as_ref(), &args.out, args.quiet)?
         }
         Some(data) => crate::commands::demo::run_embedded(

@@ -77,10 +77,17 @@ impl Checkpoint {
 }
 
 impl Job {
-    /// Adds the time worked since the last write and stores the checkpoint.
+    /// Adds the time worked since the last write and stores the checkpoint, then forgets the
+    /// stored scores of stages it left behind.
     pub(super) fn persist(&mut self, store: &dyn Store) -> Result<()> {
         self.account_time();
-        self.checkpoint.save(&self.id, store)
+        self.checkpoint.save(&self.id, store)?;
+        let stage_start = self.checkpoint.search.stage_start();
+        let gone = self.stored_stages.written(&self.id, stage_start, store)?;
+        if gone > 0 {
+            tracing::debug!("job {}: {gone} scores of earlier stages forgotten", self.id);
+        }
+        Ok(())
     }
 
     /// Adds the time since the last account to the job's active seconds.

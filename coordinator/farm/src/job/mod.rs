@@ -12,6 +12,7 @@
 //! - `pace`: photons per second and the time left.
 //! - [`scoring`]: a complete search group scored away from the scheduler's lock.
 //! - [`faults`]: a job paused when the store fails, and restored from it.
+//! - `forgetting`: stored scores of stages the search has left, removed.
 //!
 //! A job moves Preparing (target and ε calibration renders) → Searching (one group per search
 //! step, holding the step's renders that have no cached score) → Finished. Every transition is
@@ -21,6 +22,7 @@
 
 pub mod checkpoint;
 pub mod faults;
+mod forgetting;
 pub mod outputs;
 mod pace;
 pub mod pinning;
@@ -75,6 +77,8 @@ pub struct Job {
     /// The job finished and its outputs are still to be stored (off the lock:
     /// [`outputs`]).
     pub outputs_due: bool,
+    /// Where its stored scores were forgotten to.
+    stored_stages: forgetting::StoredStages,
 }
 
 impl Job {
@@ -131,8 +135,12 @@ impl Job {
             })
             .with_context(|| format!("job {id}"))?;
         let scoring = setup::restored_scoring(&id, &plan, &checkpoint, store)?.map(Arc::new);
-        let scores = store.scores(&id)?;
-        Ok(Job::assemble(id, record, plan, checkpoint, scores, scoring))
+        let stage_start = checkpoint.search.stage_start();
+        let mut scores = store.scores(&id)?;
+        scores.retain(|_, (_, step)| *step >= stage_start);
+        let mut job = Job::assemble(id, record, plan, checkpoint, scores, scoring);
+        job.stored_stages = forgetting::StoredStages::restored(stage_start);
+        Ok(job)
     }
 
     fn assemble(
@@ -164,6 +172,7 @@ impl Job {
             last_active: Instant::now(),
             paused: None,
             outputs_due: false,
+            stored_stages: forgetting::StoredStages::default(),
         }
     }
 
@@ -222,8 +231,7 @@ impl Job {
     /// lock is released ([`outputs`]).
     fn finish(&mut self, store: &dyn Store) -> Result<()> {
         self.checkpoint.state = JobState::Finished;
-        self.account_time();
-        self.checkpoint.save(&self.id, store)?;
+        self.persist(store)?;
         self.outputs_due = true;
         tracing::info!(
             "job {} finished: similarity {:.4}",

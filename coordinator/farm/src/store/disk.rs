@@ -153,6 +153,21 @@ impl Store for SledStore {
         Ok(out)
     }
 
+    fn forget_scores_before(&self, job: &str, step: u64) -> Result<usize, StoreError> {
+        // Not flushed here: a score that comes back after a crash is forgotten again.
+        let mut old = Vec::new();
+        for kv in self.scores.scan_prefix(prefix(job)) {
+            let (k, v) = kv?;
+            if decode_score(&v).is_ok_and(|(_, s)| s < step) {
+                old.push(k);
+            }
+        }
+        for k in &old {
+            self.scores.remove(k)?;
+        }
+        Ok(old.len())
+    }
+
     fn delete_job(&self, job: &str) -> Result<(), StoreError> {
         self.records.remove(job.as_bytes())?;
         self.progress.remove(job.as_bytes())?;

@@ -152,6 +152,14 @@ impl Store for MemoryStore {
         Ok(out)
     }
 
+    fn forget_scores_before(&self, job: &str, step: u64) -> Result<usize, StoreError> {
+        let mut t = self.write()?;
+        let before = t.scores.len();
+        t.scores
+            .retain(|(j, _), v| j != job || decode_score(v).map_or(true, |(_, s)| s >= step));
+        Ok(before - t.scores.len())
+    }
+
     fn delete_job(&self, job: &str) -> Result<(), StoreError> {
         let mut t = self.write()?;
         t.records.remove(job);

@@ -75,8 +75,55 @@ pub trait Store: Send + Sync {
         step: u64,
     ) -> Result<(), StoreError>;
     fn scores(&self, job: &str) -> Result<BTreeMap<[u8; 32], (Score, u64)>, StoreError>;
+    /// Removes a job's scores rendered for steps before `step` (a stage its search has left,
+    /// [`scatterfarm_search::Search::stage_start`]); returns how many. A score that cannot be
+    /// read is left for [`Store::scores`] to report.
+    fn forget_scores_before(&self, job: &str, step: u64) -> Result<usize, StoreError>;
     /// Removes everything of a job.
     fn delete_job(&self, job: &str) -> Result<(), StoreError>;
     /// Makes every write so far durable.
     fn flush(&self) -> Result<(), StoreError>;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Scores of steps before the given one go, of that job only; damaged ones stay for
+    /// [`Store::scores`] to report.
+    fn forgets_only_earlier_steps_of_one_job(s: &dyn Store) {
+        let (a, b) = (s.new_job_id().unwrap(), s.new_job_id().unwrap());
+        for (i, step) in [0u64, 3, 7, 7, 12].into_iter().enumerate() {
+            s.put_score(&a, &[i as u8; 32], Score::exact(i as f64), step)
+                .unwrap();
+            s.put_score(&b, &[i as u8; 32], Score::exact(i as f64), step)
+                .unwrap();
+        }
+        assert_eq!(s.forget_scores_before(&a, 7).unwrap(), 2);
+        assert_eq!(s.forget_scores_before(&a, 7).unwrap(), 0);
+        let kept: Vec<u64> = s.scores(&a).unwrap().values().map(|(_, st)| *st).collect();
+        assert_eq!(kept, vec![7, 7, 12]);
+        assert_eq!(s.scores(&b).unwrap().len(), 5, "another job's scores stay");
+        assert_eq!(s.forget_scores_before(&a, 100).unwrap(), 3);
+        assert!(s.scores(&a).unwrap().is_empty());
+    }
+
+    #[test]
+    fn the_memory_store_forgets_only_earlier_steps_of_one_job() {
+        let s = MemoryStore::new();
+        forgets_only_earlier_steps_of_one_job(&s);
+        s.put_raw_score("job-x", &[1; 32], b"short");
+        assert_eq!(s.forget_scores_before("job-x", 100).unwrap(), 0);
+        assert!(
+            s.scores("job-x").is_err(),
+            "the damaged score is still reported"
+        );
+    }
+
+    #[test]
+    fn the_sled_store_forgets_only_earlier_steps_of_one_job() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = SledStore::open(dir.path()).unwrap();
+        forgets_only_earlier_steps_of_one_job(&s);
+    }
 }
