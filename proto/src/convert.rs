@@ -9,6 +9,7 @@
 //! [`fingerprint_to_proto`] and [`fingerprint_from_proto`].
 
 use crate::differential::{differential_from_proto, differential_to_proto, DifferentialPart};
+use crate::scored::{check_scored, scored_to_proto};
 use crate::v1;
 use bytes::Bytes;
 use scatterfarm_model::engine::{
@@ -70,6 +71,10 @@ pub enum ConvertError {
     Target(String),
     #[error("change scores: {0}")]
     ChangeScores(String),
+    #[error("scored task: {0}")]
+    Scored(String),
+    #[error("render scores: {0}")]
+    RenderScores(String),
     #[error("result {item}: {source}")]
     Result {
         item: usize,
@@ -87,6 +92,9 @@ pub struct RenderTask {
     /// Present for a differential render (its one item, from photon 0); the job's target
     /// travels beside it ([`crate::differential::target_from_proto`]).
     pub differential: Option<DifferentialPart>,
+    /// Whether the worker scores every render (all from photon 0) against the job's target and
+    /// returns the scores instead of the counts ([`crate::scored`]).
+    pub scored: bool,
 }
 
 impl RenderTask {
@@ -141,6 +149,7 @@ pub fn task_to_proto(
             .differential
             .as_ref()
             .map(|d| differential_to_proto(d, target)),
+        scored: task.scored.then(|| scored_to_proto(target)),
     }
 }
 
@@ -246,12 +255,17 @@ pub fn decode_task(task: &v1::Task, geometry: Geometry) -> Result<RenderTask, Co
         .as_ref()
         .map(|d| differential_from_proto(d, items.len(), photons.first, pixels, table.len()))
         .transpose()?;
+    let scored = task.scored.is_some();
+    if scored {
+        check_scored(differential.is_some(), photons.first)?;
+    }
     Ok(RenderTask {
         geometry,
         table,
         items,
         photons,
         differential,
+        scored,
     })
 }
 
@@ -413,6 +427,7 @@ mod tests {
             photon_first: 10,
             photon_count: 20,
             differential: None,
+            scored: None,
         }
     }
 

@@ -5,21 +5,23 @@
 //!
 //! Beside the generated code, [`convert`] holds every conversion between the protocol's messages
 //! and the model's types (both ends encode and check the same way), [`differential`] those of a
-//! differential render's parts (changes, the job's target, the changes' scores), [`auth`] the
-//! shared-token check both ends agree on, [`channel`] the client channel, and
-//! [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
+//! differential render's parts (changes, the job's target, the changes' scores), [`scored`]
+//! those of a task whose worker scores its renders (the scores that come back instead of the
+//! counts), [`auth`] the shared-token check both ends agree on, [`channel`] the client channel,
+//! and [`v1::MAX_MESSAGE_BYTES`] the message size limit both ends raise tonic's default to.
 
 pub mod auth;
 pub mod channel;
 pub mod convert;
 pub mod differential;
+pub mod scored;
 
 /// Package `scatterfarm.v1`.
 pub mod v1 {
     tonic::include_proto!("scatterfarm.v1");
 
     /// The protocol version this build speaks.
-    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 2 };
+    pub const PROTOCOL: ProtocolVersion = ProtocolVersion { major: 1, minor: 3 };
 
     /// Messages up to this size are accepted and sent (a default-size count matrix is 5.3 MB;
     /// a task result carries one per assignment).

@@ -85,6 +85,8 @@ impl Rpc {
             photons_per_second: 1e6,
             name: name.to_string(),
             renders_differentially: true,
+            // Its tasks come back as counts (`render_task`); the real agent scores renders.
+            scores_renders: false,
         };
         self.worker_call(|mut w| async move { w.register(request).await })
     }
@@ -103,6 +105,8 @@ impl Rpc {
             photons_per_second,
             name: name.to_string(),
             renders_differentially: true,
+            // Its tasks come back as counts (`render_task`); the real agent scores renders.
+            scores_renders: false,
         };
         self.worker_call(|mut w| async move { w.register(request).await })
             .unwrap_or_else(|s| panic!("registration refused: {s:?}"))
@@ -160,6 +164,7 @@ impl Rpc {
             scatter_events: 0,
             render_seconds: 0.01,
             change_scores: Vec::new(),
+            render_scores: Vec::new(),
         };
         self.worker_call(|mut w| async move { w.complete(request).await })
     }

@@ -205,6 +205,12 @@ fn metrics_text(s: &Snapshot, rates: (f64, f64)) -> Result<String> {
     );
     counter(
         &mut reg,
+        "renders_scored_on_workers",
+        "Renders scored by the workers that rendered them (their scores sent, not their counts)",
+        s.counters.renders_scored_on_workers,
+    );
+    counter(
+        &mut reg,
         "photons",
         "Photons in accepted results since the coordinator started",
         s.counters.photons,
@@ -628,6 +634,7 @@ mod tests {
                 results_refused: 3,
                 results_accepted: 7,
                 renders_completed: 9,
+                renders_scored_on_workers: 4,
                 photons: 1000,
             },
         };
@@ -637,6 +644,7 @@ mod tests {
             "scatterfarm_tasks_leased 2",
             "scatterfarm_lease_expiries_total 1",
             "scatterfarm_results_refused_total 3",
+            "scatterfarm_renders_scored_on_workers_total 4",
             "scatterfarm_photons_per_second 2000000",
             "scatterfarm_job_progress{job=\"j1\",state=\"searching\"} 0.25",
             "scatterfarm_workers 0",

@@ -8,6 +8,11 @@
 //! estimates; it goes to one worker whole, which renders it in the job's chunks and returns its
 //! counts with one score per change (the deltas behind them never cross the wire).
 //!
+//! A scored group (a likelihood job's renders that nothing extends) is cut by renders, not by
+//! photons: each piece is some of its renders over all their photons, and the worker returns
+//! one deviance per render instead of its counts ([`scatterfarm_proto::scored`]), so the
+//! coordinator never ingests those lightfields.
+//!
 //! Counts are additive over photon ranges (`[0, a) + [a, n) = [0, n)` per item, bit-exactly), so
 //! a group's sums do not depend on how it was cut, in what order pieces came back, or how often a
 //! piece was leased again.
@@ -35,6 +40,18 @@ pub struct Piece {
     pub attempt: u32,
     pub first: u32,
     pub count: u32,
+    /// The group's renders the piece holds, from `items_first`: all of them for a plain
+    /// group, some for a scored one.
+    pub items_first: u32,
+    pub items_count: u32,
+}
+
+impl Piece {
+    /// The indices of the group's renders the piece holds.
+    pub fn items(&self) -> std::ops::Range<usize> {
+        let first = self.items_first as usize;
+        first..first + self.items_count as usize
+    }
 }
 
 /// Renders rendered together.
@@ -65,6 +82,25 @@ pub struct RenderGroup {
     pub changes: Vec<Change>,
     /// A differential group's change scores, once its piece is in.
     change_scores: Option<Vec<Option<Deviance>>>,
+    /// Whether its workers score its renders (cut by renders, every piece from photon 0).
+    scored: bool,
+    /// A scored group's next render never handed out.
+    item_next: usize,
+    /// A scored group's render scores as their pieces come in, one slot per render.
+    render_scores: Vec<Option<Deviance>>,
+    /// A scored group's renders scored so far.
+    items_done: usize,
+}
+
+/// What a complete group yields.
+#[derive(Debug)]
+pub struct GroupParts {
+    /// The summed counts, one per item (empty for a scored group).
+    pub counts: Vec<CountMatrix>,
+    /// A differential group's change scores.
+    pub change_scores: Option<Vec<Option<Deviance>>>,
+    /// A scored group's render scores, one per item.
+    pub render_scores: Option<Vec<Deviance>>,
 }
 
 impl RenderGroup {
@@ -92,7 +128,42 @@ impl RenderGroup {
             scatter_events: 0,
             changes: Vec::new(),
             change_scores: None,
+            scored: false,
+            item_next: 0,
+            render_scores: Vec::new(),
+            items_done: 0,
         }
+    }
+
+    /// The group as one whose workers score its renders (a plain group from photon 0): it is
+    /// cut by renders, and its renders' scores come back instead of their counts.
+    pub fn scored_on_workers(mut self) -> RenderGroup {
+        if self.is_differential() || self.start != 0 {
+            return self;
+        }
+        self.scored = true;
+        self.render_scores = vec![None; self.items.len()];
+        self
+    }
+
+    /// Whether its workers score its renders.
+    pub fn is_scored(&self) -> bool {
+        self.scored
+    }
+
+    /// Whether a worker that does not score renders can be served from the group: a plain
+    /// group, or a scored one nothing has been taken from yet, which then goes back to counts
+    /// (the coordinator scores them, to the same scores).
+    pub fn serves_counts(&mut self) -> bool {
+        if !self.scored {
+            return true;
+        }
+        if self.item_next > 0 || self.items_done > 0 || !self.requeue.is_empty() {
+            return false;
+        }
+        self.scored = false;
+        self.render_scores = Vec::new();
+        true
     }
 
     /// The group as a differential render of its one item, estimating `changes` too.
@@ -109,7 +180,7 @@ impl RenderGroup {
     /// The group with photons `[0, start)` of every item already summed in `sums` (one
     /// matrix per item, in order): only `[start, photons)` is handed out.
     pub fn starting_from(mut self, start: u32, sums: Vec<CountMatrix>) -> RenderGroup {
-        if start == 0 || start >= self.photons || sums.len() != self.items.len() {
+        if start == 0 || start >= self.photons || sums.len() != self.items.len() || self.scored {
             return self;
         }
         self.start = start;
@@ -121,11 +192,16 @@ impl RenderGroup {
 
     /// Whether a piece can be handed out now.
     pub fn has_work(&self) -> bool {
+        if self.scored {
+            return !self.requeue.is_empty() || self.item_next < self.items.len();
+        }
         !self.requeue.is_empty() || self.next < self.photons
     }
 
-    /// The next piece: a handed-back one (next attempt), else up to `max_photons` new photons.
-    /// `new_task_id` gives ids to new pieces.
+    /// The next piece: a handed-back one (next attempt), else up to `max_photons` new photons
+    /// per source of every render (a scored group: whole renders, as many as `max_photons`
+    /// photons per source of one render make, at least one). `new_task_id` gives ids to new
+    /// pieces.
     pub fn take(
         &mut self,
         max_photons: u32,
@@ -134,6 +210,23 @@ impl RenderGroup {
         if let Some(mut p) = self.requeue.pop_front() {
             p.attempt += 1;
             return Some(p);
+        }
+        if self.scored {
+            let left = self.items.len() - self.item_next;
+            if left == 0 {
+                return None;
+            }
+            let renders = (max_photons / self.photons.max(1)).clamp(1, left as u32);
+            let piece = Piece {
+                task_id: new_task_id(),
+                attempt: 1,
+                first: 0,
+                count: self.photons,
+                items_first: self.item_next as u32,
+                items_count: renders,
+            };
+            self.item_next += renders as usize;
+            return Some(piece);
         }
         if self.next >= self.photons {
             return None;
@@ -149,6 +242,8 @@ impl RenderGroup {
             attempt: 1,
             first: self.next,
             count,
+            items_first: 0,
+            items_count: self.items.len() as u32,
         };
         self.next += count;
         Some(piece)
@@ -159,15 +254,32 @@ impl RenderGroup {
         self.requeue.push_back(piece);
     }
 
-    /// Checks a piece's counts: one matrix per item, each of the group's shape, and no source
-    /// with more exits than photons launched; and a differential group's change scores.
+    /// Checks a piece's result: one count matrix per item, each of the group's shape, and no
+    /// source with more exits than photons launched; a differential group's change scores; a
+    /// scored group's render scores, and no counts.
     pub fn check(
         &self,
         piece: &Piece,
         counts: &[CountMatrix],
         change_scores: &[Option<Deviance>],
+        render_scores: &[Deviance],
     ) -> Result<(), String> {
         self.check_change_scores(change_scores)?;
+        if self.scored {
+            if !counts.is_empty() {
+                return Err(format!(
+                    "{} count matrices for renders scored on the worker",
+                    counts.len()
+                ));
+            }
+            return self.check_render_scores(piece, render_scores);
+        }
+        if !render_scores.is_empty() {
+            return Err(format!(
+                "{} render scores for renders scored by the coordinator",
+                render_scores.len()
+            ));
+        }
         if counts.len() != self.items.len() {
             return Err(format!(
                 "{} count matrices for {} assignments",
@@ -226,34 +338,52 @@ impl RenderGroup {
                 }
                 None => {}
                 Some(d) => {
-                    if d.blocks.len() != expected {
-                        return Err(format!(
-                            "change {k}: {} blocks, expected {expected}",
-                            d.blocks.len()
-                        ));
-                    }
-                    let sum: f64 = d.blocks.iter().sum();
-                    if d.blocks.iter().any(|b| *b > 0.0) || sum.to_bits() != d.value.to_bits() {
-                        return Err(format!(
-                            "change {k}: a score of {} that is not the sum of its blocks, or a \
-                             block above 0",
-                            d.value
-                        ));
-                    }
+                    check_deviance(d, expected).map_err(|why| format!("change {k}: {why}"))?
                 }
             }
         }
         Ok(())
     }
 
-    /// Adds a checked piece's counts (and a differential group's change scores).
+    /// Checks a scored piece's render scores: one per render it holds, each with the
+    /// geometry's blocks, every block a deviance's (not above 0) and the value their sum.
+    fn check_render_scores(&self, piece: &Piece, scores: &[Deviance]) -> Result<(), String> {
+        if scores.len() != piece.items_count as usize {
+            return Err(format!(
+                "{} render scores for {} renders",
+                scores.len(),
+                piece.items_count
+            ));
+        }
+        let expected = blocks(self.geometry.sources() * self.geometry.bins());
+        for (k, d) in scores.iter().enumerate() {
+            check_deviance(d, expected).map_err(|why| format!("render {k}: {why}"))?;
+        }
+        Ok(())
+    }
+
+    /// Adds a checked piece's counts (and a differential group's change scores, or a scored
+    /// group's render scores).
     pub fn accumulate(
         &mut self,
         piece: &Piece,
         counts: Vec<CountMatrix>,
         scatter_events: u64,
         change_scores: Vec<Option<Deviance>>,
+        render_scores: Vec<Deviance>,
     ) {
+        if self.scored {
+            for (slot, score) in self.render_scores[piece.items()]
+                .iter_mut()
+                .zip(render_scores)
+            {
+                if slot.replace(score).is_none() {
+                    self.items_done += 1;
+                }
+            }
+            self.scatter_events += scatter_events;
+            return;
+        }
         if self.is_differential() {
             self.change_scores = Some(change_scores);
         }
@@ -270,8 +400,12 @@ impl RenderGroup {
         self.scatter_events += scatter_events;
     }
 
-    /// Whether every photon of every render has been summed.
+    /// Whether every photon of every render has been summed (a scored group: every render
+    /// scored).
     pub fn is_complete(&self) -> bool {
+        if self.scored {
+            return self.items_done == self.items.len();
+        }
         self.done == u64::from(self.photons)
     }
 
@@ -280,19 +414,53 @@ impl RenderGroup {
         self.done
     }
 
-    /// The summed counts, one per item, and a differential group's change scores.
-    pub fn into_parts(self) -> (Vec<CountMatrix>, Option<Vec<Option<Deviance>>>) {
-        if self.sums.is_empty() {
-            let zeros = CountMatrix::zeros(self.geometry.sources(), self.geometry.bins());
-            return (vec![zeros; self.items.len()], self.change_scores);
+    /// What the complete group yields: its summed counts (one per item; none for a scored
+    /// group), a differential group's change scores, a scored group's render scores.
+    pub fn into_parts(self) -> GroupParts {
+        if self.scored {
+            return GroupParts {
+                counts: Vec::new(),
+                change_scores: None,
+                render_scores: self.render_scores.into_iter().collect(),
+            };
         }
-        (self.sums, self.change_scores)
+        let counts = if self.sums.is_empty() {
+            let zeros = CountMatrix::zeros(self.geometry.sources(), self.geometry.bins());
+            vec![zeros; self.items.len()]
+        } else {
+            self.sums
+        };
+        GroupParts {
+            counts,
+            change_scores: self.change_scores,
+            render_scores: None,
+        }
     }
 
     /// The summed counts, one per item.
     pub fn into_sums(self) -> Vec<CountMatrix> {
-        self.into_parts().0
+        self.into_parts().counts
     }
+}
+
+/// How far above 0 a block may round: a term is never below 0 but its floating-point sum can
+/// be, by a few ulps, where the render matches the target exactly.
+const BLOCK_ROUNDING: f64 = 1e-9;
+
+/// Checks a deviance from a worker: `expected` blocks, none above 0 (beyond rounding), the
+/// value their sum (bit for bit, as the likelihood sums them).
+fn check_deviance(d: &Deviance, expected: usize) -> Result<(), String> {
+    if d.blocks.len() != expected {
+        return Err(format!("{} blocks, expected {expected}", d.blocks.len()));
+    }
+    let sum: f64 = d.blocks.iter().sum();
+    if d.blocks.iter().any(|b| *b > BLOCK_ROUNDING) || sum.to_bits() != d.value.to_bits() {
+        return Err(format!(
+            "a score of {} that is not the sum of its blocks, or a block above 0",
+            d.value
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -364,7 +532,7 @@ mod tests {
         let all = whole.take(1000, &mut next).unwrap();
         assert_eq!((all.first, all.count), (0, 100));
         let c = render(&whole, &all);
-        whole.accumulate(&all, c, 0, Vec::new());
+        whole.accumulate(&all, c, 0, Vec::new(), Vec::new());
         assert!(whole.is_complete());
 
         let mut cut = group(100);
@@ -380,8 +548,8 @@ mod tests {
         assert_eq!((b2.task_id, b2.attempt, b2.first), (b.task_id, 2, b.first));
         for p in [d, a, b2, c2] {
             let counts = render(&cut, &p);
-            cut.check(&p, &counts, &[]).unwrap();
-            cut.accumulate(&p, counts, 0, Vec::new());
+            cut.check(&p, &counts, &[], &[]).unwrap();
+            cut.accumulate(&p, counts, 0, Vec::new(), Vec::new());
         }
         assert!(cut.is_complete());
         assert_eq!(cut.into_sums(), whole.into_sums());
@@ -397,12 +565,12 @@ mod tests {
         let mut whole = group(100);
         let all = whole.take(1000, &mut next).unwrap();
         let c = render(&whole, &all);
-        whole.accumulate(&all, c, 0, Vec::new());
+        whole.accumulate(&all, c, 0, Vec::new(), Vec::new());
 
         let mut first = group(40);
         let p = first.take(1000, &mut next).unwrap();
         let c = render(&first, &p);
-        first.accumulate(&p, c, 0, Vec::new());
+        first.accumulate(&p, c, 0, Vec::new(), Vec::new());
         let mut rest = group(100).starting_from(40, first.into_sums());
         assert_eq!(rest.start, 40);
         let p = rest.take(1000, &mut next).unwrap();
@@ -412,7 +580,7 @@ mod tests {
             "only the photons after the prefix"
         );
         let c = render(&rest, &p);
-        rest.accumulate(&p, c, 0, Vec::new());
+        rest.accumulate(&p, c, 0, Vec::new(), Vec::new());
         assert!(rest.is_complete());
         assert_eq!(rest.into_sums(), whole.into_sums());
     }
@@ -423,12 +591,99 @@ mod tests {
         let p = g.take(10, &mut || 1).unwrap();
         let mut c = render(&g, &p);
         assert!(g
-            .check(&p, &c[..1], &[])
+            .check(&p, &c[..1], &[], &[])
             .unwrap_err()
             .contains("1 count matrices"));
         c[1].counts[0] += 11;
-        assert!(g.check(&p, &c, &[]).unwrap_err().contains("exited"));
+        assert!(g.check(&p, &c, &[], &[]).unwrap_err().contains("exited"));
         let wrong = vec![CountMatrix::zeros(3, 3); 2];
-        assert!(g.check(&p, &wrong, &[]).unwrap_err().contains("expected"));
+        assert!(g
+            .check(&p, &wrong, &[], &[])
+            .unwrap_err()
+            .contains("expected"));
+    }
+
+    #[test]
+    fn a_scored_group_is_cut_by_renders_and_takes_scores_not_counts() {
+        let mut t = group(50);
+        let all = t.take(50, &mut || 0).unwrap();
+        let tc = &render(&t, &all)[1];
+        let target = scatterfarm_model::likelihood::Target {
+            values: tc.counts.iter().map(|&v| v as f32 / 50.0).collect(),
+            photons_per_source: 50,
+        };
+        let mut g = group(50).scored_on_workers();
+        assert!(g.is_scored());
+        let mut ids = 0u64;
+        let mut next = || {
+            ids += 1;
+            ids
+        };
+        // 60 photons per source make one render of 50: one render per piece, all photons.
+        let a = g.take(60, &mut next).unwrap();
+        let b = g.take(60, &mut next).unwrap();
+        assert!(g.take(60, &mut next).is_none());
+        assert_eq!(
+            (a.first, a.count, a.items(), b.items()),
+            (0, 50, 0..1, 1..2)
+        );
+        let score = |g: &RenderGroup, p: &Piece| -> Vec<Deviance> {
+            let counts = render(
+                g,
+                &Piece {
+                    items_first: 0,
+                    items_count: 2,
+                    ..*p
+                },
+            );
+            counts[p.items()]
+                .iter()
+                .map(|c| scatterfarm_model::likelihood::deviance(&target, c, 50).unwrap())
+                .collect()
+        };
+        let (sa, sb) = (score(&g, &a), score(&g, &b));
+        assert!(g
+            .check(&a, &render(&g, &a), &[], &sa)
+            .unwrap_err()
+            .contains("count matrices"));
+        assert!(g
+            .check(&a, &[], &[], &[])
+            .unwrap_err()
+            .contains("0 render scores"));
+        let mut bent = sa.clone();
+        bent[0].value += 1.0;
+        assert!(g
+            .check(&a, &[], &[], &bent)
+            .unwrap_err()
+            .contains("render 0"));
+        for (p, s) in [(b, sb.clone()), (a, sa.clone())] {
+            g.check(&p, &[], &[], &s).unwrap();
+            assert!(!g.is_complete());
+            g.accumulate(&p, Vec::new(), 0, Vec::new(), s);
+        }
+        assert!(g.is_complete());
+        let parts = g.into_parts();
+        assert!(parts.counts.is_empty());
+        assert_eq!(
+            parts.render_scores.unwrap(),
+            vec![sa[0].clone(), sb[0].clone()]
+        );
+        // A scored group nothing was taken from goes back to counts for a worker that does
+        // not score; once taken from, it stays scored.
+        let mut fresh = group(50).scored_on_workers();
+        assert!(fresh.serves_counts() && !fresh.is_scored());
+        assert_eq!(fresh.take(60, &mut next).unwrap().items(), 0..2);
+        let mut taken = group(50).scored_on_workers();
+        taken.take(60, &mut next).unwrap();
+        assert!(!taken.serves_counts() && taken.is_scored());
+        // A plain group takes no render scores.
+        let mut plain = group(10);
+        let p = plain.take(10, &mut || 1).unwrap();
+        assert_eq!(p.items(), 0..2);
+        let c = render(&plain, &p);
+        assert!(plain
+            .check(&p, &c, &[], &sa)
+            .unwrap_err()
+            .contains("render scores"));
     }
 }

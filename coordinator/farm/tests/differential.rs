@@ -6,7 +6,7 @@
 mod common;
 
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Abilities, Rendered, Scheduler, Settings};
 use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::spec::JobSpec;
@@ -31,8 +31,18 @@ fn differential_renders_go_whole_to_workers_that_render_them_and_their_scores_ar
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
     // Same engine fingerprint, but it says it does not render differentially (as a GPU worker).
-    let plain = s.register("gpu".into(), engine.fingerprint(), 2e6, false);
-    let cpu = s.register("cpu".into(), engine.fingerprint(), 2e6, true);
+    let plain = s.register(
+        "gpu".into(),
+        engine.fingerprint(),
+        2e6,
+        Abilities::of_this_build(false),
+    );
+    let cpu = s.register(
+        "cpu".into(),
+        engine.fingerprint(),
+        2e6,
+        Abilities::of_this_build(true),
+    );
     let (mut differential, mut waited, mut refused) = (0, 0, 0);
     for round in 0.. {
         assert!(round < 100_000, "the job did not end");

@@ -1,13 +1,15 @@
 //! Scoring off the scheduler's lock, in process: a result that completes a search group hands
 //! the group out as [`ScoreWork`]; while it is out, its job leases nothing and the scheduler
 //! answers heartbeats; its scores, kept afterwards, give exactly the map of scores made at
-//! once. Scores that come back for a cancelled job are dropped.
+//! once. Scores that come back for a cancelled job are dropped. A likelihood job's renders
+//! are scored by the workers that render them (their scores come back, not their counts), and
+//! end with exactly the map the coordinator's own scores give.
 
 mod common;
 
 use scatterfarm_coordinator::job::scoring::ScoreWork;
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Abilities, Scheduler, Settings};
 use scatterfarm_coordinator::store::MemoryStore;
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_model::Engine;
@@ -35,7 +37,12 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
     let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
-    let worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
+    let worker = s.register(
+        "w".into(),
+        engine.fingerprint(),
+        2e6,
+        Abilities::of_this_build(true),
+    );
     let mut handed_out = 0;
     for round in 0.. {
         assert!(round < 100_000, "the job did not end");
@@ -104,4 +111,83 @@ fn scores_made_off_the_lock_give_the_map_of_scores_made_at_once() {
 #[test]
 fn scores_that_come_back_for_a_cancelled_job_are_dropped() {
     run(Scoring::CancelledMeanwhile);
+}
+
+/// A likelihood job (its refinement screened by direct renders) run by one in-process worker
+/// that scores renders or not: the materials, and how many tasks came back as scores.
+fn likelihood_job(scores_renders: bool) -> (Vec<u8>, usize) {
+    const JOB: &str = "scene = \"three.toml\"\npermutations = 1\niterations = 4\n\
+        photons_per_iteration = 256\nseed = 7\nsearch = \"likelihood\"\nrefine_sweeps = 2\n";
+    let settings = Settings {
+        task_seconds: 0.02,
+        ..Settings::default()
+    };
+    let mut s = Scheduler::open(Arc::new(MemoryStore::new()), settings).unwrap();
+    let (_, inputs) = common::job();
+    let spec =
+        scatterfarm_job::spec::JobSpec::from_toml(JOB, std::path::Path::new("job.toml")).unwrap();
+    let id = s.submit(spec, inputs).unwrap();
+    let engine = CpuEngine::new();
+    let abilities = Abilities {
+        renders_differentially: true,
+        scores_renders,
+    };
+    let worker = s.register("w".into(), engine.fingerprint(), 2e6, abilities);
+    let mut scored = 0;
+    for round in 0.. {
+        assert!(round < 100_000, "the job did not end");
+        let task = match s.lease(&worker).unwrap() {
+            Ok(task) => task,
+            Err(why) => {
+                eprintln!("no task: {why}");
+                break;
+            }
+        };
+        assert!(
+            scores_renders || !task.scored,
+            "a worker that does not score renders was leased a scored task"
+        );
+        if task.scored {
+            scored += 1;
+            assert_eq!(task.piece.first, 0, "a scored task renders all its photons");
+            assert!(
+                task.scoring.is_some(),
+                "a scored task without the job's target"
+            );
+            let rendered = common::render(&engine, &task);
+            assert!(rendered.counts.as_ref().unwrap().is_empty());
+            if scored > 1 {
+                let (j, t, a) = (task.job.clone(), task.piece.task_id, task.piece.attempt);
+                s.complete_and_score(&worker, &j, t, a, rendered).unwrap();
+                continue;
+            }
+            // Counts where scores are due are refused (the piece is leased again).
+            let mut wrong = common::render(&engine, &task);
+            wrong.render_scores = Ok(Vec::new());
+            wrong.counts = Ok(vec![
+                scatterfarm_model::CountMatrix::zeros(
+                    task.geometry.sources(),
+                    task.geometry.bins()
+                );
+                task.items.len()
+            ]);
+            let (j, t, a) = (task.job.clone(), task.piece.task_id, task.piece.attempt);
+            assert!(s.complete_and_score(&worker, &j, t, a, wrong).is_err());
+            continue;
+        }
+        let rendered = common::render(&engine, &task);
+        let (j, t, a) = (task.job.clone(), task.piece.task_id, task.piece.attempt);
+        s.complete_and_score(&worker, &j, t, a, rendered).unwrap();
+    }
+    assert_eq!(s.counters.renders_scored_on_workers > 0, scores_renders);
+    (materials(&s, &id), scored)
+}
+
+#[test]
+fn renders_scored_on_workers_give_the_map_of_scores_made_by_the_coordinator() {
+    let (on_workers, scored) = likelihood_job(true);
+    let (here, none) = likelihood_job(false);
+    assert!(scored > 3, "{scored} scored tasks");
+    assert_eq!(none, 0);
+    assert!(on_workers == here, "another map");
 }

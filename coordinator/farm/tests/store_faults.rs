@@ -6,7 +6,7 @@ mod common;
 
 use scatterfarm_coordinator::job::outputs::stored_outputs;
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Abilities, Scheduler, Settings};
 use scatterfarm_coordinator::status::{all_statuses, state_name, status_of};
 use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
@@ -27,7 +27,12 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
     let id = s.submit(spec, inputs).unwrap();
     let submitted = store.writes();
     let engine = CpuEngine::new();
-    let mut worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
+    let mut worker = s.register(
+        "w".into(),
+        engine.fingerprint(),
+        2e6,
+        Abilities::of_this_build(true),
+    );
     let mut failing_rounds = 0;
     let mut paused_seen = false;
     for round in 0.. {
@@ -67,7 +72,12 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
                         // Time passes: the pause is over. The worker, silent meanwhile, was
                         // forgotten and registers again.
                         s.sweep(Instant::now() + Duration::from_secs(60));
-                        worker = s.register("w".into(), engine.fingerprint(), 2e6, true);
+                        worker = s.register(
+                            "w".into(),
+                            engine.fingerprint(),
+                            2e6,
+                            Abilities::of_this_build(true),
+                        );
                     }
                     other => {
                         panic!("the job is {other} with nothing to lease ({reason}): {status:?}")

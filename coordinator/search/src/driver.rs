@@ -52,6 +52,13 @@ pub struct Scoring {
 }
 
 impl Scoring {
+    /// Whether renders are scored by the likelihood alone (metric deviance, no tiebreak): a
+    /// score then depends on the render's counts and the target only, so it can be made where
+    /// the counts are ([`Score::of_deviance`]).
+    pub fn is_likelihood(&self) -> bool {
+        self.metric == Metric::Deviance && self.secondary.is_none()
+    }
+
     /// ε of renders with `photons` per source.
     pub fn epsilon(&self, photons: u32) -> Result<f64> {
         self.epsilons
@@ -63,17 +70,12 @@ impl Scoring {
     /// The score of a render of `photons` per source.
     pub fn score(&self, counts: &CountMatrix, photons: u32) -> Result<Score> {
         let n = u64::from(photons);
-        if self.metric == Metric::Deviance && self.secondary.is_none() {
-            // The likelihood needs no ε; its standard error is its blocks' spread.
-            let d = likelihood::deviance(&self.target, counts, n)?;
-            let std_error = likelihood::spread(&d.blocks);
-            return Ok(Score {
-                value: d.value,
-                std_error,
-                secondary: None,
-                blocks: d.blocks,
-                changes: Vec::new(),
-            });
+        if self.is_likelihood() {
+            return Ok(Score::of_deviance(likelihood::deviance(
+                &self.target,
+                counts,
+                n,
+            )?));
         }
         let epsilon = self.epsilon(photons)?;
         let value = similarity::score(self.metric, &self.target, counts, n, epsilon)?;
@@ -128,7 +130,7 @@ impl Scoring {
         changes: Vec<Option<ChangeScore>>,
     ) -> Result<Score> {
         anyhow::ensure!(
-            self.metric == Metric::Deviance && self.secondary.is_none(),
+            self.is_likelihood(),
             "differential renders are scored by the likelihood (metric deviance, no tiebreak)"
         );
         let mut score = self.score(counts, photons)?;

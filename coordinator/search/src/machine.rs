@@ -170,6 +170,19 @@ impl Score {
             changes: Vec::new(),
         }
     }
+
+    /// The likelihood score of a render from its deviance, wherever that was computed (here,
+    /// or by the worker that rendered it): the value and blocks as they are, the standard
+    /// error the blocks' spread.
+    pub fn of_deviance(d: scatterfarm_model::likelihood::Deviance) -> Score {
+        Score {
+            value: d.value,
+            std_error: crate::likelihood::spread(&d.blocks),
+            secondary: None,
+            blocks: d.blocks,
+            changes: Vec::new(),
+        }
+    }
 }
 
 /// The best assignment of a level.

@@ -50,6 +50,10 @@ pub struct StepGroup {
     /// A differential render (one item, from photon 0): the changes it also estimates
     /// ([`Steps::complete_differential`] scores it). Empty for plain renders.
     pub changes: Vec<Change>,
+    /// Whether [`Steps::keep`] keeps the group's counts (racing's first stage, extended by a
+    /// later full render): a group that does not may be scored where it is rendered, its
+    /// counts never handed over.
+    pub keeps_counts: bool,
 }
 
 /// What [`Steps::next`] did.
@@ -205,6 +209,7 @@ impl Steps {
                         photons: *photons,
                         prefixes: Vec::new(),
                         changes: request.changes.clone(),
+                        keeps_counts: false,
                     });
                 }
                 continue;
@@ -217,6 +222,7 @@ impl Steps {
             }
         }
         if !missing.is_empty() || !differential.is_empty() {
+            let full = search.config().photons.level(level);
             let mut groups: Vec<StepGroup> = missing
                 .into_iter()
                 .map(|((start, photons), items)| {
@@ -244,6 +250,7 @@ impl Steps {
                         photons,
                         prefixes,
                         changes: Vec::new(),
+                        keeps_counts: photons < full,
                     }
                 })
                 .collect();
@@ -311,7 +318,8 @@ impl Steps {
     }
 
     /// Keeps a group's scores, made by [`score_group`] from its complete `counts` (the farm
-    /// scores away from its scheduler's lock); returns the new scores.
+    /// scores away from its scheduler's lock, or its workers score and `counts` is empty: the
+    /// group's [`StepGroup::keeps_counts`] was false); returns the new scores.
     pub fn keep(
         &mut self,
         search: &Search,
@@ -321,7 +329,7 @@ impl Steps {
         scores: Vec<Score>,
     ) -> Result<Vec<NewScore>> {
         anyhow::ensure!(
-            items.len() == counts.len() && items.len() == scores.len(),
+            (counts.is_empty() || items.len() == counts.len()) && items.len() == scores.len(),
             "{} count matrices and {} scores for {} renders",
             counts.len(),
             scores.len(),
@@ -331,10 +339,12 @@ impl Steps {
         let level = search.progress().level;
         let full = search.config().photons.level(level);
         let mut new = Vec::with_capacity(items.len());
-        for ((item, counts), score) in items.iter().zip(counts).zip(scores) {
+        for (item, score) in items.iter().zip(scores) {
             self.scores.insert(item.identity, (score.clone(), step));
             new.push((item.identity, score, step));
-            if photons < full && level == self.prefix_level {
+        }
+        if photons < full && level == self.prefix_level {
+            for (item, counts) in items.iter().zip(counts) {
                 let key = (item.item.assignment.clone(), item.item.seed);
                 self.prefixes.keep(key, photons, counts);
             }

@@ -102,15 +102,20 @@ impl TargetCache {
         self.0.jobs()
     }
 
-    /// The target a differential `task` over `geometry` scores against: the one it carries
-    /// (checked, then kept), else the job's cached one.
+    /// The target a differential or scored `task` over `geometry` scores against: the one it
+    /// carries (checked, then kept), else the job's cached one.
     pub fn resolve(
         &mut self,
         task: &Task,
         geometry: &Geometry,
     ) -> Result<Arc<Target>, ConvertError> {
         let observations = geometry.sources() * geometry.bins();
-        if let Some(t) = task.differential.as_ref().and_then(|d| d.target.as_ref()) {
+        let carried = task
+            .differential
+            .as_ref()
+            .and_then(|d| d.target.as_ref())
+            .or_else(|| task.scored.as_ref().and_then(|s| s.target.as_ref()));
+        if let Some(t) = carried {
             let target = Arc::new(target_from_proto(t, observations)?);
             self.0.insert(&task.job_id, target.clone());
             return Ok(target);

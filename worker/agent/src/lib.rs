@@ -124,6 +124,7 @@ async fn start(
         photons_per_second,
         name,
         renders_differentially: engine.renders_differentially(),
+        scores_renders: true,
     };
     let connector =
         session::Connector::new(config.endpoint, request, fingerprint.key(), stop.clone());

@@ -231,6 +231,7 @@ fn task(job: &str, task_id: u64, with_geometry: bool) -> Task {
         photon_first: 100,
         photon_count: 50,
         differential: None,
+        scored: None,
     }
 }
 
@@ -650,4 +651,60 @@ async fn without_a_given_rate_the_engine_is_measured() {
         "measured {rate:.3e} photons/s; the run took {:.2} s",
         start.elapsed().as_secs_f64()
     );
+}
+
+/// A scored task of `job`: both items, photons `[0, 50)`, scored against `target` if it is
+/// sent.
+fn scored_task(job: &str, task_id: u64, target: Option<&Target>) -> Task {
+    let mut t = task(job, task_id, true);
+    t.photon_first = 0;
+    t.photon_count = 50;
+    t.scored = Some(scatterfarm_proto::scored::scored_to_proto(target));
+    t
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scored_tasks_return_the_deviance_of_each_render_and_no_counts() {
+    let g = geometry();
+    let target = Target {
+        values: vec![0.01; g.sources() * g.bins()],
+        photons_per_source: 1000,
+    };
+    let fake = Fake::with(|s| {
+        s.tasks = [
+            scored_task("t", 3, None),
+            scored_task("s", 1, Some(&target)),
+            scored_task("s", 2, None),
+        ]
+        .into();
+    });
+    let url = serve(fake.clone()).await;
+    let summary = Running::start(config(&url, Some(2)), cpu())
+        .finish(false)
+        .await
+        .unwrap();
+    assert_eq!(summary.tasks_completed, 2);
+    let s = fake.state();
+    assert!(s.registrations[0].scores_renders);
+    // A scored task of a job whose target it never got is given back, saying so.
+    assert_eq!(s.releases.len(), 1);
+    assert!(
+        s.releases[0].reason.contains("target"),
+        "{}",
+        s.releases[0].reason
+    );
+    // The scores are the deviances of the renders the coordinator would have scored.
+    let render = scatterfarm_proto::convert::decode_task(&scored_task("s", 1, None), g).unwrap();
+    let outputs = cpu().render(&render.batch()).unwrap();
+    let expected: Vec<_> = outputs
+        .iter()
+        .map(|o| scatterfarm_model::likelihood::deviance(&target, &o.counts, 50).unwrap())
+        .collect();
+    assert_eq!(s.completed.len(), 2);
+    for c in &s.completed {
+        assert!(c.counts.is_empty(), "counts came back with the scores");
+        assert!(c.scatter_events > 0);
+        let scores = scatterfarm_proto::scored::render_scores_from_proto(&c.render_scores).unwrap();
+        assert_eq!(scores, expected);
+    }
 }

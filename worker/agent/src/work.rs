@@ -1,6 +1,7 @@
 //! The lease loop: lease a task, render it on a blocking thread, return its counts (or give it
 //! back), until shutdown or `max_tasks`. A differential task is rendered in its chunks and its
-//! changes are scored here against the job's target, so one score per change goes back.
+//! changes are scored here against the job's target, so one score per change goes back; a
+//! scored task's renders are scored here too, and their scores go back instead of the counts.
 
 use super::cache::{GeometryCache, TargetCache};
 use super::retry::{describe, is_auth_failure, is_transient, within, Backoff, Stop};
@@ -8,9 +9,10 @@ use super::session::{Connector, Session};
 use super::{AgentError, AgentSummary};
 use scatterfarm_model::differential::{render_in_chunks, PhotonChunks};
 use scatterfarm_model::engine::{Engine, RenderOutput};
-use scatterfarm_model::likelihood::{change_deviances, Target};
+use scatterfarm_model::likelihood::{change_deviances, deviance, Target};
 use scatterfarm_proto::convert::{decode_task, outputs_to_proto, ConvertError, RenderTask};
 use scatterfarm_proto::differential::change_scores_to_proto;
+use scatterfarm_proto::scored::render_scores_to_proto;
 use scatterfarm_proto::v1::{self, CompleteRequest, LeaseRequest, ReleaseRequest, Task};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -53,6 +55,7 @@ struct Encoded {
     counts: Vec<v1::CountMatrix>,
     scatter_events: u64,
     change_scores: Vec<v1::ChangeScore>,
+    render_scores: Vec<v1::RenderScore>,
 }
 
 /// What became of a leased task.
@@ -194,11 +197,13 @@ impl Worker {
         let decoded = cache
             .resolve(&task)
             .and_then(|geometry| decode_task(&task, geometry))
-            .and_then(|render| match render.differential {
-                None => Ok((render, None)),
-                Some(_) => targets
+            .and_then(|render| {
+                if render.differential.is_none() && !render.scored {
+                    return Ok((render, None));
+                }
+                targets
                     .resolve(&task, &render.geometry)
-                    .map(|t| (render, Some(t))),
+                    .map(|t| (render, Some(t)))
             });
         let (render, target) = match decoded {
             Ok(decoded) => decoded,
@@ -224,6 +229,7 @@ impl Worker {
             counts,
             scatter_events,
             change_scores,
+            render_scores,
         } = match encoded {
             Ok(encoded) => encoded,
             Err(e) => {
@@ -246,6 +252,7 @@ impl Worker {
             scatter_events,
             render_seconds: seconds,
             change_scores,
+            render_scores,
         };
         Ok(if self.complete(session, &task_ref, request).await? {
             Outcome::Completed { photons }
@@ -256,7 +263,8 @@ impl Worker {
 
     /// Runs the engine on a blocking thread (to the end, shutdown or not) and encodes what it
     /// rendered, or the error text; with the wall seconds. A differential task (with the
-    /// job's `target`) is rendered in its chunks and its changes scored there too.
+    /// job's `target`) is rendered in its chunks and its changes scored there too; a scored task's
+    /// renders are scored against it and only their scores kept.
     async fn render(
         &self,
         render: RenderTask,
@@ -267,15 +275,20 @@ impl Worker {
         let joined = tokio::task::spawn_blocking(move || match (&render.differential, target) {
             (Some(part), Some(target)) => render_and_score(engine.as_ref(), &render, part, &target),
             (Some(_), None) => Err("a differential task without the job's target".to_string()),
-            (None, _) => {
+            (None, target) => {
                 let outputs = engine.render(&render.batch()).map_err(|e| e.to_string())?;
-                let (counts, scatter_events) =
-                    outputs_to_proto(&render, &outputs).map_err(|e: ConvertError| e.to_string())?;
-                Ok(Encoded {
-                    counts,
-                    scatter_events,
-                    change_scores: Vec::new(),
-                })
+                if !render.scored {
+                    let (counts, scatter_events) = outputs_to_proto(&render, &outputs)
+                        .map_err(|e: ConvertError| e.to_string())?;
+                    return Ok(Encoded {
+                        counts,
+                        scatter_events,
+                        change_scores: Vec::new(),
+                        render_scores: Vec::new(),
+                    });
+                }
+                let target = target.ok_or("a scored task without the job's target")?;
+                score_renders(&render, &outputs, &target)
             }
         })
         .await;
@@ -421,6 +434,39 @@ fn render_and_score(
         counts,
         scatter_events,
         change_scores: change_scores_to_proto(&scores),
+        render_scores: Vec::new(),
+    })
+}
+
+/// A scored task's renders scored against `target` (the deviance, as the coordinator scores in
+/// process): one score per assignment, and no counts.
+fn score_renders(
+    render: &RenderTask,
+    outputs: &[RenderOutput],
+    target: &Target,
+) -> Result<Encoded, String> {
+    if outputs.len() != render.items.len() {
+        return Err(ConvertError::OutputCount {
+            expected: render.items.len(),
+            got: outputs.len(),
+        }
+        .to_string());
+    }
+    let photons = u64::from(render.photons.count);
+    let scores = outputs
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            deviance(target, &o.counts, photons).map_err(|e| format!("scoring render {k}: {e}"))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Encoded {
+        counts: Vec::new(),
+        scatter_events: outputs
+            .iter()
+            .fold(0u64, |n, o| n.saturating_add(o.scatter_events)),
+        change_scores: Vec::new(),
+        render_scores: render_scores_to_proto(&scores),
     })
 }
 

@@ -75,7 +75,12 @@ impl Job {
                         self.persist(store)?;
                     }
                     let table = self.checkpoint.search.materials();
+                    // A likelihood job's renders that nothing extends are scored where they
+                    // are rendered: only their scores come back.
+                    let likelihood = self.scoring.as_ref().is_some_and(|s| s.is_likelihood());
                     for g in groups {
+                        let scored =
+                            likelihood && !g.keeps_counts && g.changes.is_empty() && g.start == 0;
                         let group = RenderGroup::new(
                             new_group_id(),
                             Purpose::Search,
@@ -85,7 +90,12 @@ impl Job {
                             g.photons,
                         )
                         .with_changes(g.changes);
-                        self.groups.push(group.starting_from(g.start, g.prefixes));
+                        let group = group.starting_from(g.start, g.prefixes);
+                        self.groups.push(if scored {
+                            group.scored_on_workers()
+                        } else {
+                            group
+                        });
                     }
                     return Ok(());
                 }
@@ -108,10 +118,10 @@ impl Job {
         self.checkpoint.used.scatter_events += group.scatter_events;
         let (id, purpose, photons) = (group.id, group.purpose, group.photons);
         let items = group.items.clone();
-        let (sums, change_scores) = group.into_parts();
+        let parts = group.into_parts();
         match purpose {
             Purpose::Setup(kind) => {
-                if let Some(c) = sums.into_iter().next() {
+                if let Some(c) = parts.counts.into_iter().next() {
                     self.setup.set(kind, c);
                 }
                 if self.groups.is_empty() {
@@ -119,9 +129,7 @@ impl Job {
                 }
                 Ok(None)
             }
-            Purpose::Search => self
-                .score_later(id, photons, items, sums, change_scores)
-                .map(Some),
+            Purpose::Search => self.score_later(id, photons, items, parts).map(Some),
         }
     }
 }

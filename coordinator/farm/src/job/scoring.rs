@@ -1,5 +1,6 @@
 //! Scoring a complete search group away from the scheduler's lock. The job hands out a
-//! [`ScoreWork`] (the group's counts and a shared handle on its scoring) and plans nothing
+//! [`ScoreWork`] (the group's counts and a shared handle on its scoring, or the scores its
+//! workers made) and plans nothing
 //! until it comes back; [`ScoreWork::run`] scores it on any thread; [`Job::take_scored`] keeps
 //! the [`Scored`] under the lock, unless the job was cancelled, deleted or restored from the
 //! store meanwhile (a restored job plans the step again, and its renders are seeded per
@@ -7,6 +8,7 @@
 
 use super::Job;
 use crate::store::Store;
+use crate::work::GroupParts;
 use anyhow::{Context, Result};
 use scatterfarm_model::likelihood::Deviance;
 use scatterfarm_model::CountMatrix;
@@ -26,6 +28,8 @@ pub struct ScoreWork {
     counts: Vec<CountMatrix>,
     /// A differential group's change scores, as its worker returned them.
     changes: Option<Vec<Option<Deviance>>>,
+    /// A scored group's render scores, as its workers returned them (`counts` is empty).
+    renders: Option<Vec<Deviance>>,
 }
 
 /// A group's scores, to be kept by its job.
@@ -44,9 +48,11 @@ impl ScoreWork {
     /// Scores the group: the one heavy step of taking a result, run without the lock.
     pub fn run(mut self) -> Scored {
         let differential = self.changes.is_some();
-        let scores = match self.changes.take() {
-            None => score_group(&self.scoring, self.photons, &self.counts),
-            Some(changes) => self.score_differential(changes),
+        let scores = match (self.changes.take(), self.renders.take()) {
+            (Some(changes), _) => self.score_differential(changes),
+            // The same score the coordinator makes of the counts ([`Scoring::score`]).
+            (None, Some(renders)) => Ok(renders.into_iter().map(Score::of_deviance).collect()),
+            (None, None) => score_group(&self.scoring, self.photons, &self.counts),
         };
         Scored {
             job: self.job,
@@ -89,15 +95,14 @@ impl ScoreWork {
 }
 
 impl Job {
-    /// Hands group `group`'s complete counts out to be scored; the job plans no work until
-    /// [`Job::take_scored`] has them back.
+    /// Hands group `group`'s complete counts (or its workers' scores) out to be scored; the
+    /// job plans no work until [`Job::take_scored`] has them back.
     pub(super) fn score_later(
         &mut self,
         group: u64,
         photons: u32,
         items: Vec<GroupItem>,
-        counts: Vec<CountMatrix>,
-        changes: Option<Vec<Option<Deviance>>>,
+        parts: GroupParts,
     ) -> Result<ScoreWork> {
         let scoring = self
             .scoring
@@ -110,8 +115,9 @@ impl Job {
             scoring,
             photons,
             items,
-            counts,
-            changes,
+            counts: parts.counts,
+            changes: parts.change_scores,
+            renders: parts.render_scores,
         })
     }
 

@@ -1,7 +1,7 @@
 //! The scheduler proper: the next piece of work for a worker, taken from the jobs in
 //! round-robin, with the job pinned to the worker's engine on its first lease.
 
-use super::sizing::{lease_duration, max_photons, photons_per_launch};
+use super::sizing::{lease_duration, max_photons, photons_per_launch, piece_photons_per_launch};
 use super::{unix_ms_after, Refusal, Scheduler, STRIKES};
 use crate::work::Piece;
 use scatterfarm_proto::differential::DifferentialPart;
@@ -33,8 +33,11 @@ pub struct TaskOut {
     pub items: Vec<scatterfarm_model::RenderItem>,
     /// A differential render's changes and chunk size.
     pub differential: Option<DifferentialPart>,
-    /// The job's scoring, for a differential render: its target goes to workers without it.
+    /// The job's scoring, for a differential or scored render: its target goes to workers
+    /// without it.
     pub scoring: Option<Arc<Scoring>>,
+    /// Whether the worker scores the renders and returns their scores, not their counts.
+    pub scored: bool,
 }
 
 impl Scheduler {
@@ -116,7 +119,19 @@ impl Scheduler {
                 continue;
             }
             let scoring = job.scoring().cloned();
-            let Some(group) = job.groups.iter_mut().find(|g| g.has_work()) else {
+            let scores = worker.scores_renders;
+            let Some(group) = job
+                .groups
+                .iter_mut()
+                .find_map(|g| (g.has_work() && (scores || g.serves_counts())).then_some(g))
+            else {
+                if job.groups.iter().any(|g| g.has_work()) {
+                    reason = format!(
+                        "job {id}'s renders under way are scored on workers, which worker {} \
+                         does not do (a release before protocol 1.3)",
+                        worker.name
+                    );
+                }
                 continue;
             };
             let per_photon = photons_per_launch(group);
@@ -131,7 +146,7 @@ impl Scheduler {
                 &self.settings,
                 piece.count,
                 worker.photons_per_second,
-                per_photon,
+                piece_photons_per_launch(group, &piece),
             );
             let task = TaskOut {
                 job: id.clone(),
@@ -140,12 +155,16 @@ impl Scheduler {
                 geometry: group.geometry,
                 job_geometry: group.geometry == job.plan.search_geometry,
                 table: group.table.clone(),
-                items: group.items.iter().map(|i| i.item.clone()).collect(),
+                items: group.items[piece.items()]
+                    .iter()
+                    .map(|i| i.item.clone())
+                    .collect(),
                 differential: group.is_differential().then(|| DifferentialPart {
                     changes: group.changes.clone(),
                     chunk: scatterfarm_model::differential::CHUNK_PHOTONS,
                 }),
-                scoring: scoring.filter(|_| group.is_differential()),
+                scoring: scoring.filter(|_| group.is_differential() || group.is_scored()),
+                scored: group.is_scored(),
             };
             self.leases.insert(
                 piece.task_id,

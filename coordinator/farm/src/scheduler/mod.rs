@@ -35,7 +35,7 @@ mod strikes;
 pub use jobs::stored_job;
 pub use lease::{Lease, TaskOut};
 pub use liveness::Liveness;
-pub use registry::WorkerEntry;
+pub use registry::{Abilities, WorkerEntry};
 pub use results::Rendered;
 use strikes::Strikes;
 pub use strikes::STRIKES;
@@ -105,6 +105,8 @@ pub struct Counters {
     pub results_accepted: u64,
     /// Renders whose counts were complete (setup and search renders).
     pub renders_completed: u64,
+    /// Of those, renders scored by the workers that rendered them (their counts never sent).
+    pub renders_scored_on_workers: u64,
     /// Photons (all sources) of accepted results.
     pub photons: u64,
 }

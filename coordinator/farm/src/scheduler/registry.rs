@@ -17,6 +17,28 @@ pub struct WorkerEntry {
     pub tasks_completed: u64,
     /// Whether its engine renders differentially (it is leased differential renders).
     pub renders_differentially: bool,
+    /// Whether it scores plain renders against a job's target (protocol 1.3 and later): it is
+    /// leased scored renders.
+    pub scores_renders: bool,
+}
+
+/// What a worker says it can do beyond plain renders.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Abilities {
+    /// Its engine renders differentially.
+    pub renders_differentially: bool,
+    /// It scores plain renders against a job's target.
+    pub scores_renders: bool,
+}
+
+impl Abilities {
+    /// A worker of this build: it scores renders, and renders differentially if its engine does.
+    pub fn of_this_build(renders_differentially: bool) -> Abilities {
+        Abilities {
+            renders_differentially,
+            scores_renders: true,
+        }
+    }
 }
 
 /// The weight of a new measurement in a worker's speed (an exponential moving average).
@@ -42,7 +64,7 @@ impl Scheduler {
         name: String,
         fingerprint: EngineFingerprint,
         photons_per_second: f64,
-        renders_differentially: bool,
+        abilities: Abilities,
     ) -> String {
         let id = format!("w{:08x}-{}", self.boot, self.next_worker);
         self.next_worker += 1;
@@ -64,7 +86,8 @@ impl Scheduler {
                     1e5
                 },
                 tasks_completed: 0,
-                renders_differentially,
+                renders_differentially: abilities.renders_differentially,
+                scores_renders: abilities.scores_renders,
             },
         );
         self.liveness.add(&id, Instant::now());

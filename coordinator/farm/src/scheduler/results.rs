@@ -4,7 +4,7 @@
 //! scores ([`Scheduler::scored`]) advance its job.
 
 use super::giveback::Returned;
-use super::sizing::photons_per_launch;
+use super::sizing::piece_photons_per_launch;
 use super::{Lease, Refusal, Scheduler, STRIKES};
 use crate::job::scoring::{ScoreWork, Scored};
 use crate::work::RenderGroup;
@@ -22,6 +22,9 @@ pub struct Rendered {
     /// A differential render's change scores (one per change; none for a plain render), or why
     /// they could not be decoded.
     pub change_scores: Result<Vec<Option<Deviance>>, String>,
+    /// A scored task's render scores (one per assignment, and no counts; none for other
+    /// tasks), or why they could not be decoded.
+    pub render_scores: Result<Vec<Deviance>, String>,
 }
 
 impl Scheduler {
@@ -79,6 +82,7 @@ impl Scheduler {
             scatter_events,
             render_seconds,
             change_scores,
+            render_scores,
         } = rendered;
         let refused = |scheduler: &mut Scheduler, r: Refusal| {
             scheduler.counters.results_refused += 1;
@@ -96,9 +100,13 @@ impl Scheduler {
                 None => Err(Refusal::Stale(format!(
                     "task {task}'s renders are no longer needed"
                 ))),
-                Some(group) => match (&counts, &change_scores) {
-                    (Err(e), _) | (_, Err(e)) => Err(Refusal::Invalid(e.clone())),
-                    (Ok(c), Ok(s)) => group.check(&lease.piece, c, s).map_err(Refusal::Invalid),
+                Some(group) => match (&counts, &change_scores, &render_scores) {
+                    (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => {
+                        Err(Refusal::Invalid(e.clone()))
+                    }
+                    (Ok(c), Ok(s), Ok(r)) => {
+                        group.check(&lease.piece, c, s, r).map_err(Refusal::Invalid)
+                    }
                 },
             }
         };
@@ -124,9 +132,10 @@ impl Scheduler {
         }
         let counts = counts.map_err(Refusal::Invalid)?;
         let change_scores = change_scores.map_err(Refusal::Invalid)?;
+        let render_scores = render_scores.map_err(Refusal::Invalid)?;
         self.leases.remove(&task);
         self.counters.results_accepted += 1;
-        let per_launch = job_photons_per_launch(self, job_id, lease.group);
+        let per_launch = job_photons_per_launch(self, job_id, &lease);
         if let Some(w) = self.workers.get_mut(worker) {
             w.tasks_completed += 1;
             w.measured(
@@ -146,9 +155,15 @@ impl Scheduler {
             )));
         };
         let group = &mut job.groups[pos];
-        group.accumulate(&lease.piece, counts, scatter_events, change_scores);
-        let photons =
-            u64::from(lease.piece.count) * (group.geometry.sources() * group.items.len()) as u64;
+        group.accumulate(
+            &lease.piece,
+            counts,
+            scatter_events,
+            change_scores,
+            render_scores,
+        );
+        let photons = u64::from(lease.piece.count)
+            * (group.geometry.sources() * lease.piece.items_count as usize) as u64;
         job.session_photons += photons;
         self.counters.photons += photons;
         let leased_elsewhere = self.leases.values().any(|l| l.group == lease.group);
@@ -156,6 +171,9 @@ impl Scheduler {
         if job.groups[pos].is_complete() && !leased_elsewhere {
             let group: RenderGroup = job.groups.remove(pos);
             self.counters.renders_completed += group.items.len() as u64;
+            if group.is_scored() {
+                self.counters.renders_scored_on_workers += group.items.len() as u64;
+            }
             match job.group_complete(group, &mut new_group, store.as_ref()) {
                 Ok(w) => work = w,
                 Err(e) => {
@@ -222,10 +240,10 @@ impl Scheduler {
     }
 }
 
-/// Photons one photon index of `job`'s group `group` launches; 0 when the group is gone.
-fn job_photons_per_launch(s: &Scheduler, job: &str, group: u64) -> f64 {
+/// Photons one photon index of `lease`'s piece of `job` launches; 0 when its group is gone.
+fn job_photons_per_launch(s: &Scheduler, job: &str, lease: &Lease) -> f64 {
     s.jobs
         .get(job)
-        .and_then(|j| j.groups.iter().find(|g| g.id == group))
-        .map_or(0.0, photons_per_launch)
+        .and_then(|j| j.groups.iter().find(|g| g.id == lease.group))
+        .map_or(0.0, |g| piece_photons_per_launch(g, &lease.piece))
 }

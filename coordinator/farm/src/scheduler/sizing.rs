@@ -2,12 +2,23 @@
 //! its lease lasts the longer of [`Settings::min_lease`] and five times the expected render time.
 
 use super::Settings;
-use crate::work::RenderGroup;
+use crate::work::{Piece, RenderGroup};
 use std::time::Duration;
 
-/// Photons one photon index of `group` launches: sources × assignments (at least 1).
+/// Photons one photon index of `group`'s pieces launches, as [`max_photons`] sizes them:
+/// sources × assignments (a scored group, cut by renders: sources; at least 1).
 pub(super) fn photons_per_launch(group: &RenderGroup) -> f64 {
-    (group.geometry.sources() * group.items.len()).max(1) as f64
+    let renders = if group.is_scored() {
+        1
+    } else {
+        group.items.len()
+    };
+    (group.geometry.sources() * renders).max(1) as f64
+}
+
+/// Photons one photon index of `piece` of `group` launches: sources × the piece's renders.
+pub(crate) fn piece_photons_per_launch(group: &RenderGroup, piece: &Piece) -> f64 {
+    (group.geometry.sources() * piece.items_count as usize).max(1) as f64
 }
 
 /// The most photons per source a piece for a worker of `photons_per_second` holds.

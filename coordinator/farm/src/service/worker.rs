@@ -2,12 +2,13 @@
 //! give tasks back.
 
 use super::Farm;
-use crate::scheduler::{Refusal, Rendered, TaskOut};
+use crate::scheduler::{Abilities, Refusal, Rendered, TaskOut};
 use scatterfarm_model::PhotonRange;
 use scatterfarm_proto::convert::{
     fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
 };
 use scatterfarm_proto::differential::change_scores_from_proto;
+use scatterfarm_proto::scored::render_scores_from_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::worker_service_server::WorkerService;
 use std::sync::Arc;
@@ -18,8 +19,8 @@ use tonic::{Request, Response, Status};
 pub struct WorkerApi(pub Arc<Farm>);
 
 /// The wire task for `t`; the geometry is left out when it is the job's and the worker holds
-/// it (`cached` lists the jobs whose geometry it holds), and a differential task's target when
-/// the worker holds that (`cached_targets`).
+/// it (`cached` lists the jobs whose geometry it holds), and a differential or scored task's
+/// target when the worker holds that (`cached_targets`).
 fn task_to_pb(t: TaskOut, cached: &[String], cached_targets: &[String]) -> pb::Task {
     let send_geometry = !(t.job_geometry && cached.contains(&t.job));
     let scoring = t.scoring.clone();
@@ -42,6 +43,7 @@ fn task_to_pb(t: TaskOut, cached: &[String], cached_targets: &[String]) -> pb::T
             count: t.piece.count,
         },
         differential: t.differential,
+        scored: t.scored,
     };
     task_to_proto(lease, &task, t.job_geometry, send_geometry, target)
 }
@@ -77,7 +79,10 @@ impl WorkerService for WorkerApi {
                     r.name,
                     fingerprint_from_proto(f),
                     r.photons_per_second,
-                    r.renders_differentially,
+                    Abilities {
+                        renders_differentially: r.renders_differentially,
+                        scores_renders: r.scores_renders,
+                    },
                 );
                 Ok((id, scheduler.settings.heartbeat.as_millis() as u32))
             })
@@ -142,6 +147,7 @@ impl WorkerService for WorkerApi {
         self.0.liveness.touch(&r.worker_id, Instant::now());
         let counts = results_from_proto(&r.counts).map_err(|e| e.to_string());
         let change_scores = change_scores_from_proto(&r.change_scores).map_err(|e| e.to_string());
+        let render_scores = render_scores_from_proto(&r.render_scores).map_err(|e| e.to_string());
         let farm = self.0.clone();
         // Off the async threads: the lock to sum the result, then, without it, the scoring of
         // a group it completed, then the lock again to keep the scores. Heartbeats and leases
@@ -157,6 +163,7 @@ impl WorkerService for WorkerApi {
                     scatter_events: r.scatter_events,
                     render_seconds: r.render_seconds,
                     change_scores,
+                    render_scores,
                 },
             )?;
             if let Some(work) = work {
@@ -217,6 +224,7 @@ mod tests {
                 photons_per_second: 1e6,
                 name: "w".into(),
                 renders_differentially: false,
+                scores_renders: true,
             }))
             .await
             .unwrap()

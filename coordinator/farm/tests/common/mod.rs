@@ -6,7 +6,7 @@ use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::differential::{render_in_chunks, PhotonChunks};
-use scatterfarm_model::likelihood::change_deviances;
+use scatterfarm_model::likelihood::{change_deviances, deviance};
 use scatterfarm_model::{Engine, PhotonRange, RenderBatch};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -35,7 +35,8 @@ pub fn job() -> (JobSpec, Inputs) {
 }
 
 /// `task` rendered by `engine`, as a worker returns it: a differential task in its chunks, its
-/// changes scored against the job's target.
+/// changes scored against the job's target; a scored task's renders scored against it, their
+/// counts kept back.
 pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
     if let Some(part) = &task.differential {
         let scoring = task
@@ -62,6 +63,7 @@ pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
             scatter_events: output.scatter_events,
             render_seconds: 0.01,
             change_scores: Ok(scores),
+            render_scores: Ok(Vec::new()),
         };
     }
     let batch = RenderBatch {
@@ -73,16 +75,35 @@ pub fn render(engine: &CpuEngine, task: &TaskOut) -> Rendered {
             count: task.piece.count,
         },
     };
-    let counts = engine
+    let counts: Vec<_> = engine
         .render(&batch)
         .unwrap()
         .into_iter()
         .map(|o| o.counts)
         .collect();
+    if task.scored {
+        let target = &task
+            .scoring
+            .as_ref()
+            .expect("a scored task's scoring")
+            .target;
+        let photons = u64::from(task.piece.count);
+        return Rendered {
+            counts: Ok(Vec::new()),
+            scatter_events: 0,
+            render_seconds: 0.01,
+            change_scores: Ok(Vec::new()),
+            render_scores: Ok(counts
+                .iter()
+                .map(|c| deviance(target, c, photons).unwrap())
+                .collect()),
+        };
+    }
     Rendered {
         counts: Ok(counts),
         scatter_events: 0,
         render_seconds: 0.01,
         change_scores: Ok(Vec::new()),
+        render_scores: Ok(Vec::new()),
     }
 }

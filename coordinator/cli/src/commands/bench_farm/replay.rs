@@ -162,6 +162,7 @@ pub(super) async fn replay_worker(
     let registered = client
         .register(pb::RegisterRequest {
             renders_differentially: false,
+            scores_renders: false,
             protocol: Some(pb::PROTOCOL),
             fingerprint: Some(scatterfarm_proto::convert::fingerprint_to_proto(
                 &fingerprint,
@@ -218,6 +219,7 @@ pub(super) async fn replay_worker(
         let outcome = client
             .complete(pb::CompleteRequest {
                 change_scores: Vec::new(),
+                render_scores: Vec::new(),
                 worker_id: worker_id.clone(),
                 job_id: task.job_id.clone(),
                 task_id: task.task_id,

@@ -11,7 +11,7 @@ use scatterfarm_job::plan::{parse_bounds, Plan};
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_model::{likelihood, Change, CountMatrix, Geometry, Material, RenderItem, Scene};
 use scatterfarm_proto::v1;
-use scatterfarm_proto::{convert, differential};
+use scatterfarm_proto::{convert, differential, scored};
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -308,7 +308,20 @@ fn task_seed() -> v1::Task {
         photon_first: 10,
         photon_count: 20,
         differential: None,
+        scored: None,
     }
+}
+
+/// The seed task made a scored one: from photon 0, with the job's target.
+fn scored_seed() -> v1::Task {
+    let mut task = task_seed();
+    task.photon_first = 0;
+    let target = likelihood::Target {
+        values: (0..16).map(|i| i as f32 / 32.0).collect(),
+        photons_per_source: 1000,
+    };
+    task.scored = Some(scored::scored_to_proto(Some(&target)));
+    task
 }
 
 /// The seed task made a differential one: its first assignment from photon 0, two changes,
@@ -357,6 +370,10 @@ fn complete_seed(sources: u32) -> v1::CompleteRequest {
                 blocks: vec![-1.0, -2.0],
             }),
         ]),
+        render_scores: scored::render_scores_to_proto(&[likelihood::Deviance {
+            value: -1.5,
+            blocks: vec![-0.5, -1.0],
+        }]),
     }
 }
 
@@ -367,7 +384,12 @@ fn run_task(input: &[Vec<u8>]) -> bool {
                 Some(g) => convert::geometry_from_proto(g),
                 None => Ok(Geometry::default()),
             };
-            let target_ok = match task.differential.as_ref().and_then(|d| d.target.as_ref()) {
+            let carried = task
+                .differential
+                .as_ref()
+                .and_then(|d| d.target.as_ref())
+                .or_else(|| task.scored.as_ref().and_then(|s| s.target.as_ref()));
+            let target_ok = match carried {
                 Some(t) => geometry.as_ref().is_ok_and(|g| {
                     differential::target_from_proto(t, g.sources() * g.bins()).is_ok()
                 }),
@@ -381,6 +403,7 @@ fn run_task(input: &[Vec<u8>]) -> bool {
         Ok(r) => {
             convert::results_from_proto(&r.counts).is_ok()
                 && differential::change_scores_from_proto(&r.change_scores).is_ok()
+                && scored::render_scores_from_proto(&r.render_scores).is_ok()
         }
         Err(_) => false,
     };
@@ -389,10 +412,10 @@ fn run_task(input: &[Vec<u8>]) -> bool {
 
 /// A structure-aware task and result: fields set to values worth trying.
 fn generate_task(m: &mut Mutator) -> Vec<Vec<u8>> {
-    let mut task = if m.chance(2) {
-        differential_seed()
-    } else {
-        task_seed()
+    let mut task = match m.below(3) {
+        0 => differential_seed(),
+        1 => scored_seed(),
+        _ => task_seed(),
     };
     for _ in 0..1 + m.below(3) {
         match m.below(12) {
