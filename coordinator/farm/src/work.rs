@@ -13,6 +13,10 @@
 //! one deviance per render instead of its counts ([`scatterfarm_proto::scored`]), so the
 //! coordinator never ingests those lightfields.
 //!
+//! A plain group whose counts would not fit one result (more than [`MAX_RESULT_BYTES`] of
+//! matrices) is cut by renders too, with counts: each piece is at most that many bytes of its
+//! renders, over all the group's photons.
+//!
 //! Counts are additive over photon ranges (`[0, a) + [a, n) = [0, n)` per item, bit-exactly), so
 //! a group's sums do not depend on how it was cut, in what order pieces came back, or how often a
 //! piece was leased again.
@@ -23,6 +27,11 @@ use scatterfarm_model::likelihood::{blocks, Deviance};
 use scatterfarm_model::{CountMatrix, Geometry, Material};
 pub use scatterfarm_search::steps::GroupItem;
 use std::collections::VecDeque;
+
+/// The most count-matrix bytes one piece's result may carry, a quarter of a message
+/// (`scatterfarm_proto::v1::MAX_MESSAGE_BYTES`): a group whose renders' counts are more is cut
+/// by renders.
+pub const MAX_RESULT_BYTES: usize = 256 << 20;
 
 /// What a group's counts are for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,8 +49,8 @@ pub struct Piece {
     pub attempt: u32,
     pub first: u32,
     pub count: u32,
-    /// The group's renders the piece holds, from `items_first`: all of them for a plain
-    /// group, some for a scored one.
+    /// The group's renders the piece holds, from `items_first`: all of them for a group cut
+    /// by photons, some for one cut by renders.
     pub items_first: u32,
     pub items_count: u32,
 }
@@ -84,12 +93,20 @@ pub struct RenderGroup {
     change_scores: Option<Vec<Option<Deviance>>>,
     /// Whether its workers score its renders (cut by renders, every piece from photon 0).
     scored: bool,
-    /// A scored group's next render never handed out.
+    /// Whether it is cut by renders (a scored group, or one whose counts would not fit one
+    /// result): then at most this many renders per piece.
+    by_renders: Option<u32>,
+    /// A group cut by renders: its next render never handed out.
     item_next: usize,
     /// A scored group's render scores as their pieces come in, one slot per render.
     render_scores: Vec<Option<Deviance>>,
-    /// A scored group's renders scored so far.
+    /// A group cut by renders with counts: each render's counts (with the photons before
+    /// `start` summed in) as its piece comes in, one slot per render.
+    render_counts: Vec<Option<CountMatrix>>,
+    /// A group cut by renders: its renders come in so far.
     items_done: usize,
+    /// The most count-matrix bytes one piece's result may carry ([`MAX_RESULT_BYTES`]).
+    result_bytes: usize,
 }
 
 /// What a complete group yields.
@@ -113,7 +130,7 @@ impl RenderGroup {
         photons: u32,
     ) -> RenderGroup {
         let sums = Vec::new();
-        RenderGroup {
+        let mut group = RenderGroup {
             id,
             purpose,
             geometry,
@@ -129,10 +146,47 @@ impl RenderGroup {
             changes: Vec::new(),
             change_scores: None,
             scored: false,
+            by_renders: None,
             item_next: 0,
             render_scores: Vec::new(),
+            render_counts: Vec::new(),
             items_done: 0,
+            result_bytes: MAX_RESULT_BYTES,
+        };
+        group.cut_to_fit();
+        group
+    }
+
+    /// The group with results of at most `bytes` of count matrices (not [`MAX_RESULT_BYTES`]),
+    /// cut by renders if its counts are more.
+    pub fn with_result_bytes(mut self, bytes: usize) -> RenderGroup {
+        self.result_bytes = bytes;
+        if self.by_renders.is_some() && !self.scored {
+            self.by_renders = None;
         }
+        self.cut_to_fit();
+        self
+    }
+
+    /// Cuts a plain group by renders if its counts would not fit one result
+    /// (`result_bytes`); leaves it as it is otherwise. Only before anything is taken from it.
+    fn cut_to_fit(&mut self) {
+        let matrix = 4 * self.geometry.sources() * self.geometry.bins();
+        let fit = (self.result_bytes / matrix.max(1)).max(1);
+        if self.scored || self.is_differential() || self.items.len() <= fit {
+            self.by_renders = None;
+            self.render_counts = Vec::new();
+            return;
+        }
+        self.by_renders = Some(u32::try_from(fit).unwrap_or(u32::MAX));
+        self.render_counts = if self.start > 0 && self.sums.len() == self.items.len() {
+            std::mem::take(&mut self.sums)
+                .into_iter()
+                .map(Some)
+                .collect()
+        } else {
+            vec![None; self.items.len()]
+        };
     }
 
     /// The group as one whose workers score its renders (a plain group from photon 0): it is
@@ -142,6 +196,8 @@ impl RenderGroup {
             return self;
         }
         self.scored = true;
+        self.by_renders = Some(u32::MAX);
+        self.render_counts = Vec::new();
         self.render_scores = vec![None; self.items.len()];
         self
     }
@@ -149,6 +205,11 @@ impl RenderGroup {
     /// Whether its workers score its renders.
     pub fn is_scored(&self) -> bool {
         self.scored
+    }
+
+    /// Whether it is cut by renders (each piece some renders over all the group's photons).
+    pub fn is_cut_by_renders(&self) -> bool {
+        self.by_renders.is_some()
     }
 
     /// Whether a worker that does not score renders can be served from the group: a plain
@@ -163,6 +224,8 @@ impl RenderGroup {
         }
         self.scored = false;
         self.render_scores = Vec::new();
+        self.by_renders = None;
+        self.cut_to_fit();
         true
     }
 
@@ -187,12 +250,13 @@ impl RenderGroup {
         self.next = start;
         self.done = u64::from(start);
         self.sums = sums;
+        self.cut_to_fit();
         self
     }
 
     /// Whether a piece can be handed out now.
     pub fn has_work(&self) -> bool {
-        if self.scored {
+        if self.by_renders.is_some() {
             return !self.requeue.is_empty() || self.item_next < self.items.len();
         }
         !self.requeue.is_empty() || self.next < self.photons
@@ -211,17 +275,18 @@ impl RenderGroup {
             p.attempt += 1;
             return Some(p);
         }
-        if self.scored {
+        if let Some(most) = self.by_renders {
             let left = self.items.len() - self.item_next;
             if left == 0 {
                 return None;
             }
-            let renders = (max_photons / self.photons.max(1)).clamp(1, left as u32);
+            let count = self.photons - self.start;
+            let renders = (max_photons / count.max(1)).clamp(1, (left as u32).min(most));
             let piece = Piece {
                 task_id: new_task_id(),
                 attempt: 1,
-                first: 0,
-                count: self.photons,
+                first: self.start,
+                count,
                 items_first: self.item_next as u32,
                 items_count: renders,
             };
@@ -280,11 +345,11 @@ impl RenderGroup {
                 render_scores.len()
             ));
         }
-        if counts.len() != self.items.len() {
+        if counts.len() != piece.items_count as usize {
             return Err(format!(
                 "{} count matrices for {} assignments",
                 counts.len(),
-                self.items.len()
+                piece.items_count
             ));
         }
         let (sources, bins) = (self.geometry.sources(), self.geometry.bins());
@@ -387,6 +452,22 @@ impl RenderGroup {
         if self.is_differential() {
             self.change_scores = Some(change_scores);
         }
+        if self.by_renders.is_some() {
+            for (slot, c) in self.render_counts[piece.items()].iter_mut().zip(counts) {
+                match slot {
+                    // The photons before `start`, summed in.
+                    Some(sum) if self.start > 0 => {
+                        for (a, b) in sum.counts.iter_mut().zip(&c.counts) {
+                            *a += *b;
+                        }
+                    }
+                    _ => *slot = Some(c),
+                }
+            }
+            self.items_done += piece.items_count as usize;
+            self.scatter_events += scatter_events;
+            return;
+        }
         if self.sums.is_empty() {
             self.sums = counts;
         } else {
@@ -403,15 +484,10 @@ impl RenderGroup {
     /// Whether every photon of every render has been summed (a scored group: every render
     /// scored).
     pub fn is_complete(&self) -> bool {
-        if self.scored {
+        if self.by_renders.is_some() {
             return self.items_done == self.items.len();
         }
         self.done == u64::from(self.photons)
-    }
-
-    /// Photons per source summed so far.
-    pub fn done(&self) -> u64 {
-        self.done
     }
 
     /// What the complete group yields: its summed counts (one per item; none for a scored
@@ -422,6 +498,19 @@ impl RenderGroup {
                 counts: Vec::new(),
                 change_scores: None,
                 render_scores: self.render_scores.into_iter().collect(),
+            };
+        }
+        let zeros = || CountMatrix::zeros(self.geometry.sources(), self.geometry.bins());
+        if self.by_renders.is_some() {
+            let counts = self
+                .render_counts
+                .into_iter()
+                .map(|c| c.unwrap_or_else(zeros))
+                .collect();
+            return GroupParts {
+                counts,
+                change_scores: None,
+                render_scores: None,
             };
         }
         let counts = if self.sums.is_empty() {
@@ -583,6 +672,56 @@ mod tests {
         rest.accumulate(&p, c, 0, Vec::new(), Vec::new());
         assert!(rest.is_complete());
         assert_eq!(rest.into_sums(), whole.into_sums());
+    }
+
+    #[test]
+    fn a_group_too_big_for_one_result_is_cut_by_renders_to_the_same_sums() {
+        let mut whole = group(100);
+        let all = whole.take(100, &mut || 0).unwrap();
+        let c = render(&whole, &all);
+        whole.accumulate(&all, c, 0, Vec::new(), Vec::new());
+        let whole = whole.into_sums();
+        let one = 4 * geometry().sources() * geometry().bins();
+        let mut ids = 0u64;
+        let mut next = || {
+            ids += 1;
+            ids
+        };
+        // From photon 0, and from counts in hand for [0, 40).
+        let mut prefix = group(40);
+        let p = prefix.take(40, &mut next).unwrap();
+        let c = render(&prefix, &p);
+        prefix.accumulate(&p, c, 0, Vec::new(), Vec::new());
+        let cuts = [
+            group(100).with_result_bytes(one),
+            group(100)
+                .with_result_bytes(one)
+                .starting_from(40, prefix.into_sums()),
+        ];
+        for (k, mut g) in cuts.into_iter().enumerate() {
+            assert!(g.is_cut_by_renders());
+            let a = g.take(1, &mut next).unwrap();
+            let b = g.take(1000, &mut next).unwrap();
+            assert!(g.take(1000, &mut next).is_none());
+            let start = if k == 0 { 0 } else { 40 };
+            assert_eq!(
+                (a.first, a.count, a.items(), b.items()),
+                (start, 100 - start, 0..1, 1..2)
+            );
+            let counts = |p: &Piece| render(&g, p)[p.items()].to_vec();
+            let (ca, cb) = (counts(&a), counts(&b));
+            assert!(g.check(&a, &cb, &[], &[]).is_ok());
+            assert!(g
+                .check(&a, &[ca[0].clone(), cb[0].clone()], &[], &[])
+                .is_err());
+            g.accumulate(&b, cb, 0, Vec::new(), Vec::new());
+            assert!(!g.is_complete());
+            g.accumulate(&a, ca, 0, Vec::new(), Vec::new());
+            assert!(g.is_complete());
+            assert_eq!(g.into_sums(), whole, "cut {k}");
+        }
+        // Where the counts fit, the group is cut by photons.
+        assert!(!group(100).with_result_bytes(2 * one).is_cut_by_renders());
     }
 
     #[test]

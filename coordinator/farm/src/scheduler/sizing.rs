@@ -6,9 +6,9 @@ use crate::work::{Piece, RenderGroup};
 use std::time::Duration;
 
 /// Photons one photon index of `group`'s pieces launches, as [`max_photons`] sizes them:
-/// sources × assignments (a scored group, cut by renders: sources; at least 1).
+/// sources × assignments (a group cut by renders: sources; at least 1).
 pub(super) fn photons_per_launch(group: &RenderGroup) -> f64 {
-    let renders = if group.is_scored() {
+    let renders = if group.is_cut_by_renders() {
         1
     } else {
         group.items.len()

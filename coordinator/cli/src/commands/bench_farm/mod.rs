@@ -10,7 +10,9 @@
 //! recorded once at start (a real CPU-engine render of a homogeneous medium with a few photons
 //! per source) instead of rendering. Workers announce a huge photons per second, so every task
 //! is one whole render group. A task whose shape differs from the recorded one, or that asks
-//! for fewer photons than were recorded, is rendered for real by the CPU engine.
+//! for fewer photons than were recorded, is rendered for real by the CPU engine. With
+//! `--search likelihood` the search's plain renders are scored tasks, answered with the recorded
+//! renders' scores against the job's target instead of counts.
 //!
 //! After every job is searching and a warm-up, counters are read at the start and end of a
 //! measured window: renders in results the coordinator accepted, the jobs' `renders_done`,
@@ -29,7 +31,7 @@ use anyhow::{bail, ensure, Context, Result};
 use clap::Args;
 use coordinator::{clock_ticks_per_second, load_average, ChildCoordinator};
 use cpu_time::ProcessTime;
-use replay::{record, replay_worker, Recording, Stats};
+use replay::{record, replay_worker, Recording, Speaks, Stats};
 use report::{Measured, Snapshot};
 use scatterfarm_engines::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
@@ -87,6 +89,21 @@ pub struct FarmBenchArgs {
     /// Keep the coordinator's data folder and log here instead of a scratch folder.
     #[arg(long)]
     pub keep: Option<PathBuf>,
+    /// The jobs' search. With `likelihood` the workers (which say they score renders, as this
+    /// release's do) are leased scored renders and answer each with the recorded render's
+    /// score against the job's target, not its counts (`docs/model.md`, "Scored where the
+    /// counts are"); with the others every render comes back as counts.
+    #[arg(
+        long,
+        default_value_t = scatterfarm_job::options::SearchMode::Fast,
+        value_parser = crate::args::choice::choice::<scatterfarm_job::options::SearchMode>()
+    )]
+    pub search: scatterfarm_job::options::SearchMode,
+    /// Replay workers say they do not score renders (as workers before protocol 1.3), so a
+    /// likelihood job's renders come back as counts and the coordinator scores them: the
+    /// baseline of `--search likelihood`.
+    #[arg(long)]
+    pub no_worker_scoring: bool,
 }
 
 fn job_params(args: &FarmBenchArgs, index: usize) -> JobSpec {
@@ -106,6 +123,7 @@ fn job_params(args: &FarmBenchArgs, index: usize) -> JobSpec {
         race_share: Some(1.0),
         rescore_photons: Some(args.photons),
         name: Some(format!("bench-farm-{index}")),
+        search: args.search,
         ..Default::default()
     }
 }
@@ -226,7 +244,10 @@ async fn measure(
         workers.spawn(replay_worker(
             i,
             endpoint.clone(),
-            !args.no_zstd,
+            Speaks {
+                zstd: !args.no_zstd,
+                scores_renders: !args.no_worker_scoring,
+            },
             recording.clone(),
             engine.clone(),
             stats.clone(),
@@ -323,6 +344,7 @@ async fn snapshot(
         refused: load(&stats.refused),
         replayed: load(&stats.renders_replayed),
         rendered: load(&stats.renders_rendered),
+        scored: load(&stats.renders_scored),
         renders_done,
         lease_nanos: load(&stats.lease_nanos),
         leases: load(&stats.leases),

@@ -1,16 +1,22 @@
 //! Replay workers: tokio tasks in this process speaking the ordinary worker protocol, answering
 //! every task with count matrices recorded once at start (a CPU render where a task does not fit
-//! the recording).
+//! the recording). A scored task is answered with the recorded renders' scores against the
+//! job's target, scored once per job and photon count; like real workers they keep the
+//! targets they were sent and name them when they lease.
 
 use crate::commands::jobs::status_error;
 use anyhow::{Context, Result};
 use scatterfarm_engines::CpuEngine;
 use scatterfarm_job::plan::Plan;
-use scatterfarm_model::{Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
+use scatterfarm_model::likelihood::deviance;
+use scatterfarm_model::{CountMatrix, Engine, Geometry, PhotonRange, RenderBatch, RenderItem};
 use scatterfarm_proto::channel::{Authed, Endpoint};
 use scatterfarm_proto::convert::{counts_to_proto, decode_task, geometry_from_proto};
+use scatterfarm_proto::differential::target_from_proto;
+use scatterfarm_proto::scored::render_scores_to_proto;
 use scatterfarm_proto::v1 as pb;
 use scatterfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -29,6 +35,8 @@ pub(super) struct Recording {
     pub(super) photons: u32,
     /// Encoded once; cloning shares the bytes.
     pub(super) matrices: Vec<pb::CountMatrix>,
+    /// The same counts, for scoring against a job's target.
+    pub(super) counts: Vec<CountMatrix>,
     pub(super) scatter_events: Vec<u64>,
 }
 
@@ -59,6 +67,7 @@ pub(super) fn record(plan: &Plan, photons: u32) -> Result<Recording> {
         bins: geometry.bins(),
         photons,
         matrices: out.iter().map(|o| counts_to_proto(&o.counts)).collect(),
+        counts: out.iter().map(|o| o.counts.clone()).collect(),
         scatter_events: out.iter().map(|o| o.scatter_events).collect(),
     })
 }
@@ -70,6 +79,8 @@ pub(super) struct Stats {
     pub(super) renders_accepted: AtomicU64,
     pub(super) renders_replayed: AtomicU64,
     pub(super) renders_rendered: AtomicU64,
+    /// Renders answered with their recorded scores (scored tasks).
+    pub(super) renders_scored: AtomicU64,
     pub(super) bytes_accepted: AtomicU64,
     pub(super) refused: AtomicU64,
     pub(super) empty_leases: AtomicU64,
@@ -146,23 +157,77 @@ async fn answer(
     ))
 }
 
-/// One replay worker: registers, heartbeats, leases and answers until `stop`.
+/// How a replay worker speaks the protocol.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Speaks {
+    /// It compresses its results with zstd (as real workers do).
+    pub(super) zstd: bool,
+    /// It says it scores renders, and is leased scored renders.
+    pub(super) scores_renders: bool,
+}
+
+/// What a replay worker keeps of the jobs whose scored tasks it answered: the targets it was
+/// sent, and the recorded renders' scores against them per photon count.
+#[derive(Default)]
+struct Targets {
+    targets: HashMap<String, scatterfarm_model::likelihood::Target>,
+    scores: HashMap<(String, u32), Vec<pb::RenderScore>>,
+}
+
+impl Targets {
+    /// The jobs whose targets it holds, as a lease names them.
+    fn jobs(&self) -> Vec<String> {
+        self.targets.keys().cloned().collect()
+    }
+
+    /// The scores of a scored task: the recorded render each assignment replays, scored once
+    /// per job and photon count against the target the task carries or the one kept.
+    fn scores(&mut self, task: &pb::Task, recording: &Recording) -> Result<Vec<pb::RenderScore>> {
+        let observations = recording.sources * recording.bins;
+        if let Some(t) = task.scored.as_ref().and_then(|s| s.target.as_ref()) {
+            let target = target_from_proto(t, observations)?;
+            self.targets.insert(task.job_id.clone(), target);
+            self.scores.retain(|(job, _), _| *job != task.job_id);
+        }
+        let key = (task.job_id.clone(), task.photon_count);
+        if !self.scores.contains_key(&key) {
+            let target = self.targets.get(&task.job_id).with_context(|| {
+                format!("a scored task of job {} without its target", task.job_id)
+            })?;
+            let scores = recording
+                .counts
+                .iter()
+                .map(|c| deviance(target, c, u64::from(task.photon_count)))
+                .collect::<Result<Vec<_>, _>>()
+                .context("cannot score the recorded render")?;
+            self.scores
+                .insert(key.clone(), render_scores_to_proto(&scores));
+        }
+        let recorded = &self.scores[&key];
+        Ok((0..task.assignments.len() as u64)
+            .map(|i| recorded[((task.task_id + i) % RECORDED) as usize].clone())
+            .collect())
+    }
+}
+
+/// One replay worker: registers (saying whether it scores renders), heartbeats, leases and
+/// answers until `stop`.
 pub(super) async fn replay_worker(
     index: usize,
     endpoint: Endpoint,
-    zstd: bool,
+    how: Speaks,
     recording: Arc<Recording>,
     engine: Arc<CpuEngine>,
     stats: Arc<Stats>,
     stop: Arc<AtomicBool>,
 ) -> Result<()> {
     let channel = endpoint.connect().await?;
-    let mut client = worker_client(channel, zstd);
+    let mut client = worker_client(channel, how.zstd);
     let fingerprint = engine.fingerprint().tagged("replay");
     let registered = client
         .register(pb::RegisterRequest {
             renders_differentially: false,
-            scores_renders: false,
+            scores_renders: how.scores_renders,
             protocol: Some(pb::PROTOCOL),
             fingerprint: Some(scatterfarm_proto::convert::fingerprint_to_proto(
                 &fingerprint,
@@ -191,11 +256,12 @@ pub(super) async fn replay_worker(
             }
         }))
     };
+    let mut targets = Targets::default();
     while !stop.load(Ordering::Relaxed) {
         let t0 = Instant::now();
         let response = client
             .lease(pb::LeaseRequest {
-                cached_targets: Vec::new(),
+                cached_targets: targets.jobs(),
                 worker_id: worker_id.clone(),
                 cached_jobs: Vec::new(),
             })
@@ -212,14 +278,33 @@ pub(super) async fn replay_worker(
             tokio::time::sleep(pause).await;
             continue;
         };
-        let (counts, scatter_events) = answer(&task, &recording, &engine, &stats).await?;
-        let renders = counts.len() as u64;
-        let bytes: u64 = counts.iter().map(|c| c.counts_le_u32.len() as u64).sum();
+        let (counts, scatter_events, render_scores) = if task.scored.is_some() {
+            let scores = targets.scores(&task, &recording)?;
+            stats
+                .renders_scored
+                .fetch_add(scores.len() as u64, Ordering::Relaxed);
+            let events = (0..task.assignments.len() as u64)
+                .map(|i| recording.scatter_events[((task.task_id + i) % RECORDED) as usize])
+                .sum();
+            (Vec::new(), events, scores)
+        } else {
+            let (counts, events) = answer(&task, &recording, &engine, &stats).await?;
+            (counts, events, Vec::new())
+        };
+        let renders = (counts.len() + render_scores.len()) as u64;
+        let bytes: u64 = counts
+            .iter()
+            .map(|c| c.counts_le_u32.len() as u64)
+            .sum::<u64>()
+            + render_scores
+                .iter()
+                .map(|s| 8 * (1 + s.blocks.len() as u64))
+                .sum::<u64>();
         let t1 = Instant::now();
         let outcome = client
             .complete(pb::CompleteRequest {
                 change_scores: Vec::new(),
-                render_scores: Vec::new(),
+                render_scores,
                 worker_id: worker_id.clone(),
                 job_id: task.job_id.clone(),
                 task_id: task.task_id,

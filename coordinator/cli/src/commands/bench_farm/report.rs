@@ -22,6 +22,7 @@ pub(super) struct Snapshot {
     pub(super) refused: u64,
     pub(super) replayed: u64,
     pub(super) rendered: u64,
+    pub(super) scored: u64,
     pub(super) renders_done: u64,
     pub(super) lease_nanos: u64,
     pub(super) leases: u64,
@@ -62,7 +63,7 @@ pub(super) fn report(
     eprintln!(
         "bench farm: {rate:.1} full-size renders/s ingested and scored (goal {GOAL_RENDERS_PER_SECOND:.0}: {}), \
          coordinator {} CPU per render, {:.2} cores busy; {renders} renders in {tasks} tasks over {wall:.1} s; \
-         {} replay workers sending recorded counts{}, {} jobs, {host_cores} host cores",
+         {} replay workers sending recorded counts{} ({} renders as scores), {} jobs, {host_cores} host cores",
         if rate >= GOAL_RENDERS_PER_SECOND { "met" } else { "not met" },
         per_render
             .map(|s| format!("{:.2} ms", s * 1e3))
@@ -70,6 +71,7 @@ pub(super) fn report(
         cpu / wall,
         args.workers,
         if args.no_zstd { " uncompressed" } else { " with zstd" },
+        b.scored - a.scored,
         args.jobs,
     );
     let busiest = a
@@ -90,11 +92,12 @@ pub(super) fn report(
         );
     }
 
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "bench": "farm",
         "workers_replay_recorded_counts": true,
         "note": "workers do not render: they answer every task with count matrices recorded once \
-                 (a CPU-engine render of a homogeneous medium), so this measures the coordinator",
+                 (a CPU-engine render of a homogeneous medium), or a scored task with those \
+                 renders' scores against the job's target, so this measures the coordinator",
         "scene": args.scene,
         "geometry": {
             "size_mm": geometry.size_mm,
@@ -137,5 +140,9 @@ pub(super) fn report(
         "goal_renders_per_second": GOAL_RENDERS_PER_SECOND,
         "meets_goal": rate >= GOAL_RENDERS_PER_SECOND,
     });
+    // Apart: one literal this long passes `json!`'s recursion limit.
+    json["search"] = serde_json::json!(args.search);
+    json["workers_score_renders"] = serde_json::json!(!args.no_worker_scoring);
+    json["renders_scored_on_workers"] = serde_json::json!(b.scored - a.scored);
     super::super::emit(&json, args.json.as_deref())
 }
