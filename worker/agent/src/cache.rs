@@ -1,7 +1,7 @@
 //! What a worker keeps of the jobs it renders for, so their tasks can come without it: their
 //! geometries ([`GeometryCache`], `LeaseRequest.cached_jobs`) and the targets it scores their
-//! differential renders against ([`TargetCache`], `LeaseRequest.cached_targets`). Bounded: the
-//! least recently used job is forgotten first.
+//! differential and scored renders against ([`TargetCache`], `LeaseRequest.cached_targets`).
+//! Bounded, in jobs and (targets) in bytes: the least recently used job is forgotten first.
 
 use scatterfarm_model::geometry::Geometry;
 use scatterfarm_model::likelihood::Target;
@@ -16,13 +16,23 @@ use std::sync::Arc;
 struct PerJob<T> {
     entries: VecDeque<(String, T)>,
     capacity: usize,
+    /// The most bytes of values held (one value is always held, whatever its size).
+    budget: usize,
+    /// A value's bytes.
+    weight: fn(&T) -> usize,
 }
 
 impl<T: Clone> PerJob<T> {
     fn new(capacity: usize) -> Self {
+        PerJob::within(capacity, usize::MAX, |_| 0)
+    }
+
+    fn within(capacity: usize, budget: usize, weight: fn(&T) -> usize) -> Self {
         PerJob {
             entries: VecDeque::new(),
             capacity: capacity.max(1),
+            budget,
+            weight,
         }
     }
 
@@ -45,8 +55,15 @@ impl<T: Clone> PerJob<T> {
     /// Keeps `value` for `job`, replacing what it had.
     fn insert(&mut self, job: &str, value: T) {
         self.entries.retain(|(j, _)| j != job);
-        if self.entries.len() >= self.capacity {
-            self.entries.pop_front();
+        let weight = self.weight;
+        let mut held: usize = self.entries.iter().map(|(_, v)| weight(v)).sum();
+        while !self.entries.is_empty()
+            && (self.entries.len() >= self.capacity
+                || held.saturating_add(weight(&value)) > self.budget)
+        {
+            if let Some((_, v)) = self.entries.pop_front() {
+                held -= weight(&v);
+            }
         }
         self.entries.push_back((job.to_string(), value));
     }
@@ -86,15 +103,20 @@ impl GeometryCache {
     }
 }
 
-/// Job targets (a target is `sources × bins` values: fewer are kept than geometries).
+/// Job targets: as many jobs as geometries, within [`TargetCache::BYTES`] (a target is
+/// `sources × bins` values: 5.3 MB at 1152 × 1152, so about 100 of those).
 #[derive(Debug, Clone)]
 pub(crate) struct TargetCache(PerJob<Arc<Target>>);
 
 impl TargetCache {
-    pub const CAPACITY: usize = 8;
+    pub const CAPACITY: usize = 64;
+    /// The most bytes of targets kept.
+    pub const BYTES: usize = 512 << 20;
 
-    pub fn new(capacity: usize) -> Self {
-        TargetCache(PerJob::new(capacity))
+    pub fn new(capacity: usize, bytes: usize) -> Self {
+        TargetCache(PerJob::within(capacity, bytes, |t| {
+            t.values.len() * std::mem::size_of::<f32>()
+        }))
     }
 
     /// The jobs to name in a lease request, sorted.
@@ -207,7 +229,7 @@ mod tests {
             values: vec![v; n],
             photons_per_source: 100,
         };
-        let mut cache = TargetCache::new(2);
+        let mut cache = TargetCache::new(2, usize::MAX);
         assert!(matches!(
             cache.resolve(&differential_task("a", None), &g),
             Err(ConvertError::Target(_))
@@ -244,5 +266,22 @@ mod tests {
             .unwrap();
         assert_eq!(cache.jobs(), ["a", "c"]);
         assert!(cache.resolve(&differential_task("b", None), &g).is_err());
+        // Within a byte budget of two targets and a half, three jobs keep two.
+        let mut bytes = TargetCache::new(8, 4 * n * 5 / 2);
+        for job in ["a", "b", "c"] {
+            bytes
+                .resolve(&differential_task(job, Some(&target(0.1))), &g)
+                .unwrap();
+        }
+        assert_eq!(bytes.jobs(), ["b", "c"]);
+        // One target larger than the budget is still kept, alone.
+        let mut small = TargetCache::new(8, 1);
+        small
+            .resolve(&differential_task("a", Some(&target(0.1))), &g)
+            .unwrap();
+        small
+            .resolve(&differential_task("b", Some(&target(0.1))), &g)
+            .unwrap();
+        assert_eq!(small.jobs(), ["b"]);
     }
 }

@@ -84,7 +84,7 @@ impl Worker {
             return Ok(summary);
         };
         let mut cache = GeometryCache::new(GeometryCache::CAPACITY);
-        let mut targets = TargetCache::new(TargetCache::CAPACITY);
+        let mut targets = TargetCache::new(TargetCache::CAPACITY, TargetCache::BYTES);
         let mut backoff = Backoff::new();
         let mut failures = Backoff::new();
         loop {
