@@ -61,10 +61,12 @@ pub fn paired(a: &[f64], b: &[f64]) -> Option<(f64, f64)> {
         return None;
     }
     let n = a.len() as f64;
-    let diffs: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
-    let sum: f64 = diffs.iter().sum();
+    // Two passes over the differences, made again rather than kept: this runs for every pair
+    // of candidates a step compares, and allocating dominated it.
+    let diffs = || a.iter().zip(b).map(|(x, y)| x - y);
+    let sum: f64 = diffs().sum();
     let mean = sum / n;
-    let var = diffs.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    let var = diffs().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1.0);
     Some((sum, (n * var).sqrt()))
 }
 
