@@ -10,7 +10,9 @@
 //! `CI=true`, where it fails.
 
 use crate::harness::gating::{chromium, skip_or_fail};
-use crate::harness::net::{free_port, http, https, wait_for_file, HttpResponse};
+use crate::harness::net::{
+    free_port, http, https, wait_for_file, wait_for_file_from, HttpResponse,
+};
 use crate::harness::process::{output, repo_root, run, scatterfarm, Proc};
 use crate::harness::scenes::LONG_DEMO_JOB;
 use crate::harness::tls::certificates;
@@ -53,17 +55,28 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
         );
     };
     let dir = tempfile::tempdir().unwrap();
-    let http_port = free_port();
     let addr_file = dir.path().join("address");
-    let mut coordinator = scatterfarm();
-    coordinator
-        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-        .arg(dir.path().join("data"))
-        .arg("--address-file")
-        .arg(&addr_file)
-        .args(["--http", &format!("127.0.0.1:{http_port}")]);
-    let _coordinator = Proc::spawn(coordinator);
-    let url = wait_for_file(&addr_file);
+    // A free port can be taken by another test before the coordinator binds it: then it ends
+    // at once, and starts again on another.
+    let mut started = None;
+    for attempt in 1..=3 {
+        let _ = std::fs::remove_file(&addr_file);
+        let http_port = free_port();
+        let mut coordinator = scatterfarm();
+        coordinator
+            .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+            .arg(dir.path().join("data"))
+            .arg("--address-file")
+            .arg(&addr_file)
+            .args(["--http", &format!("127.0.0.1:{http_port}")]);
+        let log = dir.path().join(format!("coordinator-{attempt}.log"));
+        let mut coordinator = Proc::logged(coordinator, &log);
+        if let Some(url) = wait_for_file_from(&addr_file, &mut coordinator) {
+            started = Some((coordinator, url, http_port));
+            break;
+        }
+    }
+    let (_coordinator, url, http_port) = started.expect("the coordinator started in 3 tries");
     let mut worker = scatterfarm();
     worker
         .args(["worker", "--engine", "cpu", "--name", "page-test-worker"])

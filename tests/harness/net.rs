@@ -25,6 +25,36 @@ pub fn wait_for_file(path: &Path) -> String {
     }
 }
 
+/// The trimmed text of `path` once `proc` has written it (within 60 s, else a failure with its
+/// log); `None` if `proc` ended first, as a server does whose free port was taken meanwhile.
+pub fn wait_for_file_from(path: &Path, proc: &mut crate::harness::process::Proc) -> Option<String> {
+    let until = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Ok(text) = std::fs::read_to_string(path) {
+            if text.ends_with('\n') {
+                return Some(text.trim().to_string());
+            }
+        }
+        if !proc.running() {
+            eprintln!(
+                "`{}` ended before writing {}:\n{}",
+                proc.what,
+                path.display(),
+                proc.log_text()
+            );
+            return None;
+        }
+        assert!(
+            Instant::now() < until,
+            "{} never appeared; `{}` logged:\n{}",
+            path.display(),
+            proc.what,
+            proc.log_text()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// A plain HTTP/1.1 response: status code, header lines and body.
 pub struct HttpResponse {
     pub status: u16,
