@@ -72,6 +72,11 @@ pub(super) fn record(plan: &Plan, photons: u32) -> Result<Recording> {
     })
 }
 
+/// Which recorded render answers assignment `i` of `task`.
+fn replayed(task: &pb::Task, i: u64) -> usize {
+    ((task.task_id + i) % RECORDED) as usize
+}
+
 /// What the replay workers did, summed over all of them.
 #[derive(Default)]
 pub(super) struct Stats {
@@ -132,7 +137,7 @@ async fn answer(
         let mut events = 0;
         let counts = (0..task.assignments.len() as u64)
             .map(|i| {
-                let k = ((task.task_id + i) % RECORDED) as usize;
+                let k = replayed(task, i);
                 events += recording.scatter_events[k];
                 recording.matrices[k].clone()
             })
@@ -205,7 +210,7 @@ impl Targets {
         }
         let recorded = &self.scores[&key];
         Ok((0..task.assignments.len() as u64)
-            .map(|i| recorded[((task.task_id + i) % RECORDED) as usize].clone())
+            .map(|i| recorded[replayed(task, i)].clone())
             .collect())
     }
 }
@@ -284,7 +289,7 @@ pub(super) async fn replay_worker(
                 .renders_scored
                 .fetch_add(scores.len() as u64, Ordering::Relaxed);
             let events = (0..task.assignments.len() as u64)
-                .map(|i| recording.scatter_events[((task.task_id + i) % RECORDED) as usize])
+                .map(|i| recording.scatter_events[replayed(&task, i)])
                 .sum();
             (Vec::new(), events, scores)
         } else {
