@@ -80,3 +80,14 @@ fn add_scatter_events(item: u32, events: vec2<u32>) {
     let carry = select(0u, 1u, old + events.x < old);
     atomicAdd(&scatters[2u * item + 1u], events.y + carry);
 }
+
+// Counts this invocation in the last word of `scatters` unless its run `finished`. Lavapipe ends
+// every loop of an invocation once their iterations together pass 65 535 (gallivm's
+// LP_MAX_TGSI_LOOP_ITERATIONS, shared between all loops of a shader): the loop is left as if by a
+// `break`, and the photons not yet followed are lost. A run cut short so is counted here, and the
+// host renders its chunk again with fewer photons per invocation. Real GPUs never cut a loop.
+fn end_of_run(finished: bool) {
+    if (!finished) {
+        atomicAdd(&scatters[arrayLength(&scatters) - 1u], 1u);
+    }
+}

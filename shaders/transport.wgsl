@@ -80,7 +80,8 @@ struct Source {
 @group(0) @binding(3) var<storage, read> seeds: array<vec2<u32>>;
 // Per chunk row and bin: photons counted.
 @group(0) @binding(4) var<storage, read_write> counts: array<atomic<u32>>;
-// Per chunk item: scattering events as a 64-bit (low, high) pair.
+// Per chunk item: scattering events as a 64-bit (low, high) pair; then one word counting the
+// invocations cut short (see `end_of_run`).
 @group(0) @binding(5) var<storage, read_write> scatters: array<atomic<u32>>;
 
 override WORKGROUP_SIZE: u32 = 64u;
@@ -187,6 +188,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var exit_d0 = vec2<f32>(0.0);
     var exit_s1 = 0.0;
     var exit_d1 = vec2<f32>(0.0);
+    var finished = false;
 
     loop {
         // A round of FLIGHTS_PER_ROUND flights, then the round's exits are tallied. (The round's
@@ -295,8 +297,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         pending = 0u;
         if (left == 0u && !alive) {
+            finished = true;
             break;
         }
     }
+    end_of_run(finished);
     add_scatter_events(item, vec2<u32>(events_lo, events_hi));
 }

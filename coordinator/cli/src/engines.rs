@@ -37,7 +37,7 @@ impl EngineArgs {
     }
 
     /// The chosen engine for renders of `plan`: where its search renders differentially and
-    /// the chosen engine cannot (the GPU engine, today), the CPU engine, said in a warning,
+    /// the chosen engine cannot (an engine without per-pixel tallies), the CPU engine, said in a warning,
     /// so the job does not fail when its refinement starts.
     pub fn open_for(&self, plan: &Plan) -> Result<Box<dyn Engine>> {
         let engine = self.open()?;

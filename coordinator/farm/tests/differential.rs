@@ -30,7 +30,8 @@ fn differential_renders_go_whole_to_workers_that_render_them_and_their_scores_ar
     let spec = JobSpec::from_toml(JOB, Path::new("job.toml")).unwrap();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
-    // Same engine fingerprint, but it says it does not render differentially (as a GPU worker).
+    // Same engine fingerprint, but it says it does not render differentially (as a worker whose
+    // engine has no per-pixel tallies would).
     let plain = s.register(
         "gpu".into(),
         engine.fingerprint(),

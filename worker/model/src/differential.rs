@@ -98,6 +98,35 @@ pub fn change_is_reweightable(table: &[Material], assignment: &[u16], change: &C
     })
 }
 
+/// What every engine checks of a differential render's changes: at most `max` of them, every
+/// pixel on the grid and every material in the table.
+pub fn validate_changes(
+    geometry: &Geometry,
+    table: &[Material],
+    changes: &[Change],
+    max: usize,
+) -> Result<(), EngineError> {
+    if changes.len() > max {
+        return Err(EngineError::Unsupported(format!(
+            "{} changes in one differential render; at most {max}",
+            changes.len()
+        )));
+    }
+    let pixels = geometry.pixels();
+    for (k, c) in changes.iter().enumerate() {
+        for &(p, d) in &c.pixels {
+            if p as usize >= pixels || usize::from(d) >= table.len() {
+                return Err(EngineError::MaterialIndex {
+                    item: k,
+                    index: d,
+                    table: table.len(),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
 /// A differential render's result.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DifferentialOutput {

@@ -23,7 +23,9 @@
 use crate::rng::PhotonStream;
 use crate::transport::{trace_photon_tallied, Fate, Medium, Tally};
 use rayon::prelude::*;
-use scatterfarm_model::differential::{change_is_reweightable, Change, DifferentialOutput};
+use scatterfarm_model::differential::{
+    change_is_reweightable, validate_changes, Change, DifferentialOutput,
+};
 use scatterfarm_model::engine::{validate_batch, CountMatrix, EngineError, RenderBatch};
 use scatterfarm_model::{Geometry, Material, PhotonRange, RenderItem};
 
@@ -176,24 +178,8 @@ pub(super) fn render_differential(
         photons,
     };
     validate_batch(&batch)?;
-    if changes.len() > MAX_CHANGES {
-        return Err(EngineError::Unsupported(format!(
-            "{} changes in one differential render; at most {MAX_CHANGES}",
-            changes.len()
-        )));
-    }
+    validate_changes(&geometry, table, changes, MAX_CHANGES)?;
     let pixels = geometry.pixels();
-    for (k, c) in changes.iter().enumerate() {
-        for &(p, d) in &c.pixels {
-            if p as usize >= pixels || usize::from(d) >= table.len() {
-                return Err(EngineError::MaterialIndex {
-                    item: k,
-                    index: d,
-                    table: table.len(),
-                });
-            }
-        }
-    }
     let medium = Medium::new(geometry, table, &item.assignment);
     let supported: Vec<bool> = changes
         .iter()

@@ -1,11 +1,12 @@
 //! Device setup, apart from the work: the wgpu device and queue on one adapter, the handler
-//! that collects its errors, and the transport pipeline with its bind group layout.
+//! that collects its errors, and the transport pipelines (plain and differential) with their bind
+//! group layouts.
 //!
 //! Built once per engine ([`GpuDevice::open`]); each render then only makes buffers and bind
 //! groups and records dispatches ([`super::submission`]).
 
 use super::adapters::AdapterInfo;
-use super::records::{PARAMS_BYTES, SEED_BYTES, SOURCE_BYTES};
+use super::records::{DIFFERENTIAL_BYTES, PARAMS_BYTES, PHYSICS_BYTES, SEED_BYTES, SOURCE_BYTES};
 use super::{block_on, dispatch_plan, shader_source};
 use scatterfarm_model::engine::EngineError;
 use std::sync::{Arc, Mutex};
@@ -19,6 +20,9 @@ pub(crate) struct GpuDevice {
     pub(crate) queue: wgpu::Queue,
     pub(crate) pipeline: wgpu::ComputePipeline,
     pub(crate) layout: wgpu::BindGroupLayout,
+    /// The differential render's pipeline (entry point `differential`) and its bindings.
+    pub(crate) differential: wgpu::ComputePipeline,
+    pub(crate) differential_layout: wgpu::BindGroupLayout,
     pub(crate) limits: wgpu::Limits,
     /// The adapter's name, for error messages.
     name: String,
@@ -36,12 +40,15 @@ impl GpuDevice {
         let limits = adapter.limits();
         let (device, queue) = request_device(adapter, info, &limits, int64)?;
         let errors = collect_uncaptured_errors(&device);
-        let (pipeline, layout) = build_pipeline(&device, info, int64)?;
+        let (pipeline, layout, differential, differential_layout) =
+            build_pipelines(&device, info, int64)?;
         Ok(GpuDevice {
             device,
             queue,
             pipeline,
             layout,
+            differential,
+            differential_layout,
             limits,
             name: info.name.clone(),
             errors,
@@ -112,63 +119,102 @@ fn collect_uncaptured_errors(device: &wgpu::Device) -> Arc<Mutex<Vec<String>>> {
     errors
 }
 
-/// The shader module and the compute pipeline; a failure here means the shader does not build
-/// on this device.
-fn build_pipeline(
+/// The pipelines' parts: the transport pipeline and its layout, then the differential ones.
+type Pipelines = (
+    wgpu::ComputePipeline,
+    wgpu::BindGroupLayout,
+    wgpu::ComputePipeline,
+    wgpu::BindGroupLayout,
+);
+
+/// The shader module and its two compute pipelines (entry points `main` and `differential`); a
+/// failure here means the shader does not build on this device.
+fn build_pipelines(
     device: &wgpu::Device,
     info: &AdapterInfo,
     int64: bool,
-) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), EngineError> {
+) -> Result<Pipelines, EngineError> {
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("transport.wgsl"),
         source: wgpu::ShaderSource::Wgsl(shader_source(int64).into()),
     });
-    let layout = bind_group_layout(device);
-    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-        label: Some("transport layout"),
-        bind_group_layouts: &[Some(&layout)],
-        immediate_size: 0,
-    });
-    let workgroup = f64::from(WORKGROUP_SIZE);
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("transport"),
-        layout: Some(&pipeline_layout),
-        module: &module,
-        entry_point: Some("main"),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &[("WORKGROUP_SIZE", workgroup)],
-            zero_initialize_workgroup_memory: false,
-        },
-        cache: None,
-    });
+    let layout = bind_group_layout(device, false);
+    let differential_layout = bind_group_layout(device, true);
+    let pipeline = build_pipeline(device, &module, &layout, "main");
+    let differential = build_pipeline(device, &module, &differential_layout, "differential");
     if let Some(e) = block_on(scope.pop()) {
         return Err(EngineError::Device(format!(
             "the transport shader does not build on {}: {e}",
             info.name
         )));
     }
-    tracing::debug!(int64, "transport pipeline built on {}", info.name);
-    Ok((pipeline, layout))
+    tracing::debug!(int64, "transport pipelines built on {}", info.name);
+    Ok((pipeline, layout, differential, differential_layout))
+}
+
+fn build_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    layout: &wgpu::BindGroupLayout,
+    entry_point: &str,
+) -> wgpu::ComputePipeline {
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(entry_point),
+        bind_group_layouts: &[Some(layout)],
+        immediate_size: 0,
+    });
+    let workgroup = f64::from(WORKGROUP_SIZE);
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry_point),
+        layout: Some(&pipeline_layout),
+        module,
+        entry_point: Some(entry_point),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &[("WORKGROUP_SIZE", workgroup)],
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    })
 }
 
 /// Bindings: the dispatch's parameters (dynamic offset), then sources, medium, seeds (read), and
-/// the tallies: counts and scattering events (read-write).
-fn bind_group_layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
+/// the tallies: counts and scattering events (read-write). The differential render adds its
+/// sizes (uniform), the factors and materials (read), and its scratch and deltas (read-write).
+fn bind_group_layout(device: &wgpu::Device, differential: bool) -> wgpu::BindGroupLayout {
     let storage = |binding: u32, read_only: bool, min: u64| {
         let ty = wgpu::BufferBindingType::Storage { read_only };
         layout_entry(binding, ty, false, min)
     };
+    let mut entries = vec![
+        layout_entry(0, wgpu::BufferBindingType::Uniform, true, PARAMS_BYTES),
+        storage(1, true, SOURCE_BYTES),
+        storage(2, true, dispatch_plan::PIXEL_BYTES),
+        storage(3, true, SEED_BYTES),
+        storage(4, false, 4),
+        storage(5, false, 8),
+    ];
+    if differential {
+        entries.extend([
+            layout_entry(
+                6,
+                wgpu::BufferBindingType::Uniform,
+                false,
+                DIFFERENTIAL_BYTES,
+            ),
+            storage(7, true, 4),
+            storage(8, true, PHYSICS_BYTES),
+            storage(9, false, 4),
+            storage(10, false, 8),
+        ]);
+    }
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some("transport bindings"),
-        entries: &[
-            layout_entry(0, wgpu::BufferBindingType::Uniform, true, PARAMS_BYTES),
-            storage(1, true, SOURCE_BYTES),
-            storage(2, true, dispatch_plan::PIXEL_BYTES),
-            storage(3, true, SEED_BYTES),
-            storage(4, false, 4),
-            storage(5, false, 8),
-        ],
+        label: Some(if differential {
+            "differential bindings"
+        } else {
+            "transport bindings"
+        }),
+        entries: &entries,
     })
 }
 

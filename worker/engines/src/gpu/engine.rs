@@ -12,6 +12,9 @@
 //!    offset), copy the tallies to staging buffers, submit, wait, read back into each item's
 //!    [`CountMatrix`].
 //!
+//! A differential render (per-pixel tallies and every change's weights) takes the same device
+//! through the shader's `differential` entry point ([`super::differential`]).
+//!
 //! The device and pipeline are set up once, apart from the work ([`GpuDevice`]). Device errors
 //! are caught by wgpu's uncaptured-error handler and returned as [`EngineError::Device`]; nothing
 //! the device or the batch does can panic here.
@@ -20,16 +23,18 @@ use super::adapters::{choose, enumerate, new_instance, AdapterInfo, AdapterSelec
 use super::device::{GpuDevice, WORKGROUP_SIZE};
 use super::dispatch_plan::{self, Shape};
 use super::records::HostLayout;
-use super::{submission, SHADER_HASH};
+use super::submission::Rendered;
+use super::{differential, submission, SHADER_HASH};
 use scatterfarm_model::engine::{
     validate_batch, CountMatrix, Engine, EngineError, EngineFingerprint, RenderBatch, RenderOutput,
 };
+use scatterfarm_model::{Change, DifferentialOutput, Geometry, Material, PhotonRange, RenderItem};
 use std::fmt;
 use std::sync::Mutex;
 
 /// Bumped whenever a change outside the shader changes this engine's counts (a shader change
 /// changes [`SHADER_HASH`], which the fingerprint carries too).
-pub const GPU_ENGINE_VERSION: &str = "gpu-1";
+pub const GPU_ENGINE_VERSION: &str = "gpu-2";
 
 /// How the engine cuts work; fixed per device type, changed only by tests and benchmarks.
 #[derive(Debug, Clone)]
@@ -194,15 +199,18 @@ impl GpuEngine {
         );
         self.gpu.take_errors("before this render")?;
         for chunk in &chunks {
-            submission::render_chunk(
+            let mut per = per_invocation;
+            while let Rendered::CutShort(cut) = submission::render_chunk(
                 &self.gpu,
                 self.tuning.photons_per_dispatch,
                 batch,
                 &host,
                 chunk,
-                per_invocation,
+                per,
                 &mut outputs,
-            )?;
+            )? {
+                per = submission::fewer_per_invocation(&self.gpu, per, cut)?;
+            }
         }
         Ok(outputs)
     }
@@ -220,10 +228,45 @@ impl Engine for GpuEngine {
 
     fn render(&self, batch: &RenderBatch<'_>) -> Result<Vec<RenderOutput>, EngineError> {
         validate_batch(batch)?;
-        let _busy = match self.busy.lock() {
+        let _busy = self.lock();
+        self.render_batch(batch)
+    }
+
+    /// On a GPU. A CPU device (lavapipe) renders differentially too, but does not offer it: there
+    /// a sweep's differential render of fig7a cost 29 plain renders, the CPU engine's 2
+    /// (`tests/bench/tallies/`), so such jobs go to the CPU engine (in process) or to CPU-engine
+    /// workers. [`Engine::render_differential`] runs on either.
+    fn renders_differentially(&self) -> bool {
+        !self.info.is_cpu()
+    }
+
+    fn render_differential(
+        &self,
+        geometry: Geometry,
+        table: &[Material],
+        item: &RenderItem,
+        photons: PhotonRange,
+        changes: &[Change],
+    ) -> Result<DifferentialOutput, EngineError> {
+        let _busy = self.lock();
+        differential::render(
+            &self.gpu,
+            &self.tuning,
+            geometry,
+            table,
+            item,
+            photons,
+            changes,
+        )
+    }
+}
+
+impl GpuEngine {
+    /// The device, one render at a time.
+    fn lock(&self) -> std::sync::MutexGuard<'_, ()> {
+        match self.busy.lock() {
             Ok(guard) => guard,
             Err(poisoned) => poisoned.into_inner(),
-        };
-        self.render_batch(batch)
+        }
     }
 }

@@ -6,9 +6,11 @@
 //! - [`engine`]: [`GpuEngine`], which lays a batch out and renders it chunk by chunk;
 //! - `dispatch_plan`: how a render batch is cut into submissions and dispatches (arithmetic);
 //! - `submission`: one chunk through the device — buffers, bind group, dispatches, readback;
+//! - `differential`: the differential render (per-pixel tallies and every change's weights) on
+//!   the same device, through its own entry point of the shader;
 //! - `records`: the records the shader reads, `Pod` structs the WGSL structs mirror;
 //! - the shader source itself, concatenated here from the files in `shaders/` (random numbers,
-//!   tallies, transport).
+//!   tallies, transport, differential).
 //!
 //! The shader implements `docs/model.md` exactly, with the same Philox stream layout as
 //! [`crate::rng`]; floats are f32, so this engine agrees with the CPU engine statistically, and
@@ -24,11 +26,14 @@
 
 pub mod adapters;
 mod device;
+mod differential;
 mod dispatch_plan;
 pub mod engine;
 mod records;
 mod submission;
 
+#[cfg(test)]
+mod differential_tests;
 #[cfg(test)]
 mod tests;
 
@@ -47,6 +52,8 @@ pub const SHADER_SOURCE: &str = concat!(
     include_str!("../../../../shaders/tallies.wgsl"),
     "\n",
     include_str!("../../../../shaders/transport.wgsl"),
+    "\n",
+    include_str!("../../../../shaders/differential.wgsl"),
 );
 
 /// `mul_hi_lo` with one 64-bit multiply, for devices with 64-bit integers (`SHADER_INT64`).

@@ -110,6 +110,65 @@ shader_record! {
     }
 }
 
+shader_record! {
+    /// A differential render's sizes (`Differential` in `differential.wgsl`), one uniform record.
+    pub(crate) struct Differential {
+        /// Changes in the render.
+        pub(crate) changes: u32,
+        /// Materials in the table.
+        pub(crate) materials: u32,
+        /// Pixels N².
+        pub(crate) cells: u32,
+        /// 32-bit words of one invocation's scratch slot.
+        pub(crate) slot_words: u32,
+    }
+}
+
+shader_record! {
+    /// One table material as a change's weight needs it (`Physics` in `differential.wgsl`).
+    pub(crate) struct Physics {
+        /// σt, 0 for opaque.
+        pub(crate) sigma_t: f32,
+        /// ln σs (−∞ for σs = 0: unused then).
+        pub(crate) ln_sigma_s: f32,
+        /// ln(1 − g²).
+        pub(crate) ln_norm: f32,
+        /// g.
+        pub(crate) g: f32,
+        /// 1 when σs > 0.
+        pub(crate) scatters: u32,
+        /// 1 when opaque.
+        pub(crate) opaque: u32,
+        /// Padding to 32 bytes.
+        pub(crate) pad0: u32,
+        pub(crate) pad1: u32,
+    }
+}
+
+impl Physics {
+    pub(crate) fn of(m: &Material) -> Physics {
+        let opaque = m.is_opaque();
+        Physics {
+            sigma_t: if opaque { 0.0 } else { m.sigma_t() as f32 },
+            // Finite stand-ins where the logarithm is −∞ (σs = 0, |g| = 1): the shader may assume
+            // finite numbers, and no reweightable change reads these then.
+            ln_sigma_s: m.sigma_s.ln().max(-100.0) as f32,
+            ln_norm: (1.0 - m.g * m.g).ln().max(-100.0) as f32,
+            g: m.g as f32,
+            scatters: u32::from(m.sigma_s > 0.0),
+            opaque: u32::from(opaque),
+            pad0: 0,
+            pad1: 0,
+        }
+    }
+}
+
+/// Bytes of a differential render's uniform record.
+pub(crate) const DIFFERENTIAL_BYTES: u64 = std::mem::size_of::<Differential>() as u64;
+
+/// Bytes of one material's record for the differential render.
+pub(crate) const PHYSICS_BYTES: u64 = std::mem::size_of::<Physics>() as u64;
+
 /// Bytes of one parameter record.
 pub(crate) const PARAMS_BYTES: u64 = std::mem::size_of::<Params>() as u64;
 
@@ -263,7 +322,7 @@ mod tests {
     #[test]
     fn wgsl_structs_mirror_the_host_records() {
         let module = module();
-        let records: [(&str, &[RecordField], usize); 2] = [
+        let records: [(&str, &[RecordField], usize); 4] = [
             (
                 Params::WGSL_NAME,
                 Params::FIELDS,
@@ -273,6 +332,16 @@ mod tests {
                 Source::WGSL_NAME,
                 Source::FIELDS,
                 std::mem::size_of::<Source>(),
+            ),
+            (
+                Differential::WGSL_NAME,
+                Differential::FIELDS,
+                std::mem::size_of::<Differential>(),
+            ),
+            (
+                Physics::WGSL_NAME,
+                Physics::FIELDS,
+                std::mem::size_of::<Physics>(),
             ),
         ];
         for (name, fields, size) in records {
@@ -310,13 +379,18 @@ mod tests {
     #[test]
     fn wgsl_bindings_have_the_host_record_sizes() {
         let module = module();
-        let expected: [(u32, usize); 6] = [
+        let expected: [(u32, usize); 11] = [
             (0, std::mem::size_of::<Params>()),
             (1, std::mem::size_of::<Source>()),
             (2, std::mem::size_of::<Pixel>()),
             (3, std::mem::size_of::<Seed>()),
             (4, 4),
             (5, 4),
+            (6, std::mem::size_of::<Differential>()),
+            (7, 4),
+            (8, std::mem::size_of::<Physics>()),
+            (9, 4),
+            (10, 4),
         ];
         assert_eq!(
             PARAMS_BYTES % 16,

@@ -11,10 +11,10 @@ use std::sync::mpsc;
 use wgpu::util::DeviceExt;
 
 /// A chunk's work as the device runs it: its dispatches and how a row's photons are split.
-struct Work {
-    dispatches: Vec<Dispatch>,
-    per_invocation: u32,
-    splits: u32,
+pub(super) struct Work {
+    pub(super) dispatches: Vec<Dispatch>,
+    pub(super) per_invocation: u32,
+    pub(super) splits: u32,
 }
 
 /// The buffers of one submission.
@@ -30,14 +30,61 @@ struct Buffers {
 }
 
 /// The tallies read back: per row and bin the counts, per item the scattering events as
-/// (low, high) words.
+/// (low, high) words, and the invocations the device cut short.
 struct Tallies {
     counts: Vec<u32>,
     scatters: Vec<u32>,
+    cut_short: u32,
+}
+
+/// Bytes of a chunk's `scatters` buffer: two words per item, then the count of invocations cut
+/// short (`end_of_run` in `tallies.wgsl`).
+pub(super) fn scatter_bytes(items: usize) -> u64 {
+    items as u64 * 8 + 4
+}
+
+/// Splits a `scatters` readback into its per-item words and the count of invocations cut short.
+pub(super) fn split_cut_short(mut words: Vec<u32>) -> (Vec<u32>, u32) {
+    let cut = words.pop().unwrap_or(0);
+    (words, cut)
+}
+
+/// What came of a chunk's submission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Rendered {
+    /// Every photon followed; the tallies are in the outputs.
+    Whole,
+    /// The device cut some invocations short (lavapipe's loop limit): nothing was added, and the
+    /// chunk must be rendered again with fewer photons per invocation.
+    CutShort(u32),
+}
+
+/// Photons per invocation for a chunk rendered again after `cut` invocations were cut short at
+/// `per_invocation`, or an error when one photon per invocation was already too long.
+pub(crate) fn fewer_per_invocation(
+    gpu: &GpuDevice,
+    per_invocation: u32,
+    cut: u32,
+) -> Result<u32, EngineError> {
+    if per_invocation <= 1 {
+        return Err(gpu.error(format!(
+            "to follow every photon: {cut} invocations of one photon each were cut short (the \
+             device ends loops past 65 535 iterations; a medium this dense needs a real GPU or \
+             the CPU engine)"
+        )));
+    }
+    let fewer = (per_invocation / 4).max(1);
+    tracing::debug!(
+        cut,
+        per_invocation,
+        fewer,
+        "the device cut invocations short; rendering the chunk again"
+    );
+    Ok(fewer)
 }
 
 /// Renders the rows of `chunk` (all their photons) into `outputs`: `photons_per_dispatch` bounds
-/// each dispatch's work.
+/// each dispatch's work. Nothing is added when the device cut a run short.
 pub(crate) fn render_chunk(
     gpu: &GpuDevice,
     photons_per_dispatch: u64,
@@ -46,7 +93,7 @@ pub(crate) fn render_chunk(
     chunk: &Chunk,
     per_invocation: u32,
     outputs: &mut [RenderOutput],
-) -> Result<(), EngineError> {
+) -> Result<Rendered, EngineError> {
     let splits = batch.photons.count.div_ceil(per_invocation);
     let tasks = chunk.rows() as u64 * u64::from(splits);
     let max_tasks =
@@ -69,13 +116,21 @@ pub(crate) fn render_chunk(
     let bind_group = bind_group(gpu, &buffers);
     encode_and_submit(gpu, &bind_group, &buffers, &work.dispatches, stride);
     let tallies = read_back(gpu, &buffers)?;
+    if tallies.cut_short > 0 {
+        return Ok(Rendered::CutShort(tallies.cut_short));
+    }
     add_tallies(batch, chunk, &tallies, outputs);
-    Ok(())
+    Ok(Rendered::Whole)
 }
 
 /// The parameter records, one per dispatch, `stride` bytes apart (the device's uniform offset
 /// alignment).
-fn param_records(batch: &RenderBatch<'_>, chunk: &Chunk, work: &Work, stride: u64) -> Vec<u8> {
+pub(super) fn param_records(
+    batch: &RenderBatch<'_>,
+    chunk: &Chunk,
+    work: &Work,
+    stride: u64,
+) -> Vec<u8> {
     let geometry = Params::for_geometry(&batch.geometry);
     let mut bytes = vec![0u8; work.dispatches.len() * stride as usize];
     for (k, d) in work.dispatches.iter().enumerate() {
@@ -116,7 +171,7 @@ fn create_buffers(
     };
     let medium: Vec<_> = host.medium[items.clone()].concat();
     let counts_bytes = (chunk.rows() * batch.geometry.bins() * 4) as u64;
-    let scatter_bytes = (chunk.item_count * 8) as u64;
+    let scatter_bytes = scatter_bytes(chunk.item_count);
     let zeroed = |label: &str, size: u64, usage: wgpu::BufferUsages| {
         gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
@@ -204,7 +259,7 @@ fn encode_and_submit(
     gpu.queue.submit(Some(encoder.finish()));
 }
 
-fn whole(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+pub(super) fn whole(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry {
         binding,
         resource: buffer.as_entire_binding(),
@@ -213,8 +268,24 @@ fn whole(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
 
 /// Waits for the submission and reads the tallies back.
 fn read_back(gpu: &GpuDevice, buffers: &Buffers) -> Result<Tallies, EngineError> {
+    let mut words = map_and_wait(gpu, &[&buffers.counts_read, &buffers.scatters_read])?;
+    let (scatters, cut_short) = split_cut_short(words.pop().unwrap_or_default());
+    let counts = words.pop().unwrap_or_default();
+    Ok(Tallies {
+        counts,
+        scatters,
+        cut_short,
+    })
+}
+
+/// Waits for the submission, maps every readback buffer and returns each one's contents as
+/// 32-bit words (the buffers unmapped again).
+pub(super) fn map_and_wait(
+    gpu: &GpuDevice,
+    buffers: &[&wgpu::Buffer],
+) -> Result<Vec<Vec<u32>>, EngineError> {
     let (tx, rx) = mpsc::channel();
-    for (which, buffer) in [(0usize, &buffers.counts_read), (1, &buffers.scatters_read)] {
+    for (which, buffer) in buffers.iter().enumerate() {
         let tx = tx.clone();
         buffer.slice(..).map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send((which, r));
@@ -225,7 +296,7 @@ fn read_back(gpu: &GpuDevice, buffers: &Buffers) -> Result<Tallies, EngineError>
         .poll(wgpu::PollType::wait_indefinitely())
         .map_err(|e| gpu.error(format!("while rendering: {e}")))?;
     gpu.take_errors("while rendering")?;
-    for _ in 0..2 {
+    for _ in buffers {
         match rx.recv() {
             Ok((_, Ok(()))) => {}
             Ok((which, Err(e))) => {
@@ -240,10 +311,7 @@ fn read_back(gpu: &GpuDevice, buffers: &Buffers) -> Result<Tallies, EngineError>
             }
         }
     }
-    Ok(Tallies {
-        counts: read_words(&buffers.counts_read)?,
-        scatters: read_words(&buffers.scatters_read)?,
-    })
+    buffers.iter().map(|b| read_words(b)).collect()
 }
 
 /// A mapped readback buffer's contents as 32-bit words (then unmapped).

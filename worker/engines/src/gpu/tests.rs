@@ -16,7 +16,7 @@ use scatterfarm_model::material::{builtin_material, Material};
 
 /// The engine on the default adapter, or `None` (and a loud note) when this machine has none.
 /// Under `CI=true` a missing adapter fails the test instead.
-fn engine_or_skip() -> Option<GpuEngine> {
+pub(super) fn engine_or_skip() -> Option<GpuEngine> {
     match GpuEngine::new(&AdapterSelector::Auto) {
         Ok(engine) => Some(engine),
         Err(EngineError::Unavailable(why)) => {
@@ -953,4 +953,49 @@ fn bench_photons_per_invocation() {
             events as f64 / start.elapsed().as_secs_f64() / 1e6
         );
     }
+}
+
+/// Lavapipe ends an invocation's loops past 65 535 iterations in all, dropping the photons not
+/// yet followed; the engine notices (`end_of_run` in `tallies.wgsl`) and renders the chunk again
+/// with fewer photons per invocation, to the same counts, or refuses when even one photon is too
+/// long. Dense media (σs = 6 and 40 per mm over 16 mm) make long runs.
+#[test]
+fn runs_the_device_cuts_short_are_rendered_again_or_refused() {
+    let Some(mut gpu) = engine_or_skip() else {
+        return;
+    };
+    let geo = Geometry::new(16.0, 4, 8, 3).unwrap();
+    let dense = |gpu: &GpuEngine, sigma_s: f64, photons: u32| {
+        let table = [Material::new(sigma_s, 0.0001, 0.0).unwrap()];
+        let items = [RenderItem {
+            assignment: vec![0; 16],
+            seed: 5,
+        }];
+        gpu.render(&RenderBatch {
+            geometry: geo,
+            table: &table,
+            items: &items,
+            photons: PhotonRange::first_n(photons),
+        })
+    };
+    let default = gpu.tuning.clone();
+    gpu.tuning.per_invocation = Some(1);
+    let one = dense(&gpu, 6.0, 400).expect("one photon per invocation is followed whole");
+    gpu.tuning.per_invocation = Some(400);
+    let long = dense(&gpu, 6.0, 400).expect("a long run is rendered again");
+    assert_eq!(
+        long, one,
+        "runs rendered again give the counts of short ones"
+    );
+    gpu.tuning.per_invocation = Some(1);
+    let refused = dense(&gpu, 40.0, 200);
+    if gpu.adapter().is_cpu() {
+        match refused {
+            Err(EngineError::Device(msg)) => assert!(msg.contains("cut short"), "{msg}"),
+            other => panic!("expected a refusal, got {other:?}"),
+        }
+    } else {
+        assert!(refused.is_ok(), "{refused:?}");
+    }
+    gpu.tuning = default;
 }

@@ -1,0 +1,308 @@
+//! Tests of the GPU engine's differential render: its counts are a plain render's, a seed fixes
+//! every bit however the work is cut, exact cases are exact, and reweighted estimates agree with
+//! direct renders of the changed maps (χ² from the seeds' own spread, as the CPU engine's test).
+
+use super::engine::Tuning;
+use super::tests::engine_or_skip;
+use super::GpuEngine;
+use scatterfarm_model::differential::{Change, DifferentialOutput};
+use scatterfarm_model::engine::{CountMatrix, Engine, EngineError, RenderBatch};
+use scatterfarm_model::material::builtin_material;
+use scatterfarm_model::{Geometry, Material, PhotonRange, RenderItem};
+
+fn geometry() -> Geometry {
+    Geometry::new(16.0, 4, 8, 3).unwrap()
+}
+
+fn table() -> Vec<Material> {
+    ["moderate", "mild", "back", "uniform"]
+        .iter()
+        .map(|n| builtin_material(n).unwrap())
+        .chain([
+            Material::OPAQUE,
+            Material::TRANSMISSIVE,
+            // `moderate` with another g.
+            Material::new(0.6, 0.01, 0.5).unwrap(),
+        ])
+        .collect()
+}
+
+/// A 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.
+fn map() -> Vec<u16> {
+    let mut a = vec![0u16; 16];
+    for p in [5, 6, 9, 10] {
+        a[p] = 1;
+    }
+    a[15] = 2;
+    a
+}
+
+fn item(assignment: &[u16], seed: u64) -> RenderItem {
+    RenderItem {
+        assignment: assignment.to_vec(),
+        seed,
+    }
+}
+
+fn plain(gpu: &GpuEngine, assignment: &[u16], seed: u64, photons: u32) -> CountMatrix {
+    let table = table();
+    let items = [item(assignment, seed)];
+    gpu.render(&RenderBatch {
+        geometry: geometry(),
+        table: &table,
+        items: &items,
+        photons: PhotonRange::first_n(photons),
+    })
+    .unwrap()
+    .remove(0)
+    .counts
+}
+
+fn differential(
+    gpu: &GpuEngine,
+    assignment: &[u16],
+    seed: u64,
+    photons: PhotonRange,
+    changes: &[Change],
+) -> DifferentialOutput {
+    gpu.render_differential(
+        geometry(),
+        &table(),
+        &item(assignment, seed),
+        photons,
+        changes,
+    )
+    .unwrap()
+}
+
+fn apply(assignment: &[u16], change: &Change) -> Vec<u16> {
+    let mut a = assignment.to_vec();
+    for &(p, d) in &change.pixels {
+        a[p as usize] = d;
+    }
+    a
+}
+
+fn change(pixels: &[(u32, u16)]) -> Change {
+    Change {
+        pixels: pixels.to_vec(),
+    }
+}
+
+#[test]
+fn counts_are_a_plain_renders_and_a_seed_fixes_every_bit_however_the_work_is_cut() {
+    let Some(mut gpu) = engine_or_skip() else {
+        return;
+    };
+    assert_eq!(gpu.renders_differentially(), !gpu.adapter().is_cpu());
+    let a = map();
+    let changes = [
+        change(&[(0, 1)]),
+        change(&[(5, 0), (6, 0), (9, 0), (10, 0)]),
+        change(&[(15, 6)]),
+        change(&[(3, 4)]),
+    ];
+    let photons = PhotonRange {
+        first: 3,
+        count: 3000,
+    };
+    let reference = differential(&gpu, &a, 7, photons, &changes);
+    let items = [item(&a, 7)];
+    let direct = gpu
+        .render(&RenderBatch {
+            geometry: geometry(),
+            table: &table(),
+            items: &items,
+            photons,
+        })
+        .unwrap()
+        .remove(0);
+    assert_eq!(reference.counts, direct.counts);
+    assert_eq!(reference.scatter_events, direct.scatter_events);
+    let moved: f64 = reference
+        .deltas
+        .iter()
+        .flatten()
+        .map(|d| d.iter().map(|x| x.abs()).sum::<f64>())
+        .sum();
+    assert!(moved > 100.0, "the changes move the counts: {moved}");
+    let default = gpu.tuning.clone();
+    let bins = geometry().bins() as u64;
+    for tuning in [
+        Tuning {
+            per_invocation: Some(1),
+            photons_per_dispatch: 500,
+            ..default.clone()
+        },
+        Tuning {
+            per_invocation: Some(1000),
+            ..default.clone()
+        },
+        // Five sources per submission (the deltas of four changes, 8 bytes each).
+        Tuning {
+            max_buffer_bytes: 5 * 4 * bins * 8,
+            per_invocation: Some(37),
+            ..default.clone()
+        },
+    ] {
+        gpu.tuning = tuning.clone();
+        let got = differential(&gpu, &a, 7, photons, &changes);
+        assert_eq!(
+            got.counts, reference.counts,
+            "counts change with {tuning:?}"
+        );
+        assert_eq!(got.scatter_events, reference.scatter_events);
+        for (k, (x, y)) in got.deltas.iter().zip(&reference.deltas).enumerate() {
+            let (x, y) = (x.as_ref().unwrap(), y.as_ref().unwrap());
+            let apart: Vec<(usize, f64, f64)> = x
+                .iter()
+                .zip(y)
+                .enumerate()
+                .filter(|(_, (p, q))| p != q)
+                .map(|(i, (p, q))| (i, *p, *q))
+                .collect();
+            assert!(
+                apart.is_empty(),
+                "change {k}'s estimates change with {tuning:?}: {} of {} apart, first {:?}",
+                apart.len(),
+                x.len(),
+                &apart[..apart.len().min(5)]
+            );
+        }
+    }
+    gpu.tuning = default;
+    let other = differential(&gpu, &a, 8, photons, &changes);
+    assert_ne!(other.deltas, reference.deltas);
+}
+
+#[test]
+fn an_opaque_candidate_matches_a_direct_render_on_the_same_seed() {
+    let Some(gpu) = engine_or_skip() else { return };
+    let a = map();
+    let c = change(&[(6, 4)]);
+    let d = differential(
+        &gpu,
+        &a,
+        11,
+        PhotonRange::first_n(4000),
+        std::slice::from_ref(&c),
+    );
+    let direct = plain(&gpu, &apply(&a, &c), 11, 4000);
+    let delta = d.deltas[0].as_ref().unwrap();
+    let mut off = 0.0;
+    for (i, x) in delta.iter().enumerate() {
+        off += (f64::from(d.counts.counts[i]) + x - f64::from(direct.counts[i])).abs();
+    }
+    let changed: f64 = delta.iter().map(|x| x.abs()).sum();
+    assert!(changed > 2000.0, "the change removes photons: {changed}");
+    // Weight 0 for each photon that entered the pixel, exactly; only the blocks the change
+    // reshapes may part a rare photon by f32 rounding.
+    assert!(
+        off <= 0.01 * changed,
+        "{off} photons apart, of {changed} removed"
+    );
+}
+
+#[test]
+fn unsupported_changes_are_flagged_and_bad_ones_refused() {
+    let Some(gpu) = engine_or_skip() else { return };
+    let mut a = map();
+    a[0] = 4; // opaque
+    a[3] = 5; // transmissive
+    let changes = [
+        change(&[(0, 0)]),
+        change(&[(3, 1)]),
+        change(&[(3, 4)]),
+        change(&[(1, 5)]),
+    ];
+    let d = differential(&gpu, &a, 1, PhotonRange::first_n(50), &changes);
+    let flags: Vec<bool> = d.deltas.iter().map(Option::is_some).collect();
+    assert_eq!(flags, [false, false, true, true]);
+    let bad = gpu.render_differential(
+        geometry(),
+        &table(),
+        &item(&a, 1),
+        PhotonRange::first_n(10),
+        &[change(&[(99, 0)])],
+    );
+    assert!(
+        matches!(bad, Err(EngineError::MaterialIndex { .. })),
+        "{bad:?}"
+    );
+}
+
+/// σs, σa and g changes of a 2×2 block, of one pixel and of two: per source, the reweighted
+/// totals over four seeds agree with direct GPU renders of the changed map on four other seeds,
+/// where the unchanged map's totals do not.
+#[test]
+fn reweighted_counts_agree_with_direct_renders() {
+    let Some(gpu) = engine_or_skip() else { return };
+    let a = map();
+    let photons = 10_000;
+    let cases = [
+        change(&[(5, 0), (6, 0), (9, 0), (10, 0)]),
+        change(&[(0, 6)]),
+        change(&[(15, 3), (14, 1)]),
+    ];
+    let sources = geometry().sources();
+    let bins = geometry().bins();
+    let per_source = |row: &dyn Fn(usize) -> f64| -> Vec<f64> {
+        (0..sources)
+            .map(|s| (0..bins).map(|b| row(s * bins + b)).sum())
+            .collect()
+    };
+    let seeds = [31u64, 32, 33, 34];
+    let renders: Vec<DifferentialOutput> = seeds
+        .iter()
+        .map(|&s| differential(&gpu, &a, s, PhotonRange::first_n(photons), &cases))
+        .collect();
+    let moments = |runs: &[Vec<f64>]| -> (Vec<f64>, Vec<f64>) {
+        let k = runs.len() as f64;
+        (0..sources)
+            .map(|s| {
+                let mean = runs.iter().map(|r| r[s]).sum::<f64>() / k;
+                let var = runs.iter().map(|r| (r[s] - mean).powi(2)).sum::<f64>() / (k - 1.0);
+                (mean, var / k)
+            })
+            .unzip()
+    };
+    let base: Vec<Vec<f64>> = renders
+        .iter()
+        .map(|r| per_source(&|i| f64::from(r.counts.counts[i])))
+        .collect();
+    for (k, c) in cases.iter().enumerate() {
+        let est: Vec<Vec<f64>> = renders
+            .iter()
+            .map(|r| {
+                let delta = r.deltas[k].as_ref().unwrap();
+                per_source(&|i| f64::from(r.counts.counts[i]) + delta[i])
+            })
+            .collect();
+        let changed = apply(&a, c);
+        let direct: Vec<Vec<f64>> = seeds
+            .iter()
+            .map(|&s| {
+                let counts = plain(&gpu, &changed, s + 1000, photons);
+                per_source(&|i| f64::from(counts.counts[i]))
+            })
+            .collect();
+        let chi2 = |x: &[Vec<f64>]| {
+            let (mx, vx) = moments(x);
+            let (md, vd) = moments(&direct);
+            (0..sources)
+                .map(|s| (mx[s] - md[s]).powi(2) / (vx[s] + vd[s]).max(1e-9))
+                .sum::<f64>()
+        };
+        let (agree, apart) = (chi2(&est), chi2(&base));
+        let n = sources as f64;
+        // With four seeds a term is a squared t with 6 degrees of freedom: mean 1.5.
+        assert!(
+            agree < 3.0 * n,
+            "change {k}: χ² {agree:.1} over {n} sources"
+        );
+        assert!(
+            apart > 3.0 * agree && apart > 6.0 * n,
+            "change {k}: the unchanged map is told apart (χ² {apart:.1}; reweighted {agree:.1})"
+        );
+    }
+}
