@@ -445,6 +445,46 @@ fn tls_carries_a_job_end_to_end_and_plaintext_is_refused() {
 }
 
 #[test]
+fn lease_requests_that_list_too_many_cached_jobs_are_refused_and_the_worker_still_leases() {
+    let farm = Farm::start(&[]);
+    let rpc = Rpc::connect(&farm.address);
+    let fake = rpc.register_fake("many-cached");
+    let id = farm.submit();
+    let lease = |cached_jobs: Vec<String>, cached_targets: Vec<String>| {
+        let request = pb::LeaseRequest {
+            worker_id: fake.clone(),
+            cached_jobs,
+            cached_targets,
+        };
+        rpc.worker_call(|mut w| async move { w.lease(request).await })
+    };
+    let many: Vec<String> = (0..=scatterfarm_proto::convert::MAX_CACHED_LISTED)
+        .map(|i| format!("j{i}"))
+        .collect();
+    let message = assert_code(lease(many.clone(), Vec::new()), Code::InvalidArgument);
+    assert!(
+        message.contains("cached_jobs") && message.contains(&many.len().to_string()),
+        "{message}"
+    );
+    let message = assert_code(lease(Vec::new(), many), Code::InvalidArgument);
+    assert!(message.contains("cached_targets"), "{message}");
+    let long = "j".repeat(scatterfarm_proto::convert::MAX_JOB_ID_BYTES + 1);
+    let message = assert_code(
+        lease(vec![id.clone(), long], Vec::new()),
+        Code::InvalidArgument,
+    );
+    assert!(
+        message.contains("entry 1") && message.contains("bytes"),
+        "{message}"
+    );
+    // Nothing was leased by the refused requests: the first lease that lists within the limits
+    // gets the job's first task.
+    let task = rpc.lease(&fake);
+    assert_eq!(task.job_id, id);
+    assert_eq!(task.attempt, 1);
+}
+
+#[test]
 fn malformed_results_are_refused_with_a_reason() {
     let mut farm = Farm::start(&["--task-seconds", "0.05"]);
     let rpc = Rpc::connect(&farm.address);

@@ -80,6 +80,55 @@ pub enum ConvertError {
         item: usize,
         source: Box<ConvertError>,
     },
+    #[error(
+        "lease request: {field} lists {entries} jobs, at most {MAX_CACHED_LISTED} are accepted \
+         (a worker caches {WORKER_CACHE_JOBS})"
+    )]
+    CachedCount { field: &'static str, entries: usize },
+    #[error("lease request: {field} entry {index} is {bytes} bytes, a job id is at most {MAX_JOB_ID_BYTES}")]
+    CachedId {
+        field: &'static str,
+        index: usize,
+        bytes: usize,
+    },
+}
+
+/// Jobs one worker keeps a geometry and a target of, each (the agent's caches).
+pub const WORKER_CACHE_JOBS: usize = 64;
+
+/// The most entries a lease request's `cached_jobs` or `cached_targets` may list: a worker
+/// caches [`WORKER_CACHE_JOBS`], and the coordinator looks each task's job up in these lists.
+pub const MAX_CACHED_LISTED: usize = 16 * WORKER_CACHE_JOBS;
+
+/// The longest job id a lease request may list (the coordinator's ids are a few bytes).
+pub const MAX_JOB_ID_BYTES: usize = 256;
+
+/// Checks what a lease request lists before the coordinator uses it: at most
+/// [`MAX_CACHED_LISTED`] jobs per list, each id at most [`MAX_JOB_ID_BYTES`].
+pub fn check_lease_request(r: &v1::LeaseRequest) -> Result<(), ConvertError> {
+    for (field, list) in [
+        ("cached_jobs", &r.cached_jobs),
+        ("cached_targets", &r.cached_targets),
+    ] {
+        if list.len() > MAX_CACHED_LISTED {
+            return Err(ConvertError::CachedCount {
+                field,
+                entries: list.len(),
+            });
+        }
+        if let Some((index, id)) = list
+            .iter()
+            .enumerate()
+            .find(|(_, id)| id.len() > MAX_JOB_ID_BYTES)
+        {
+            return Err(ConvertError::CachedId {
+                field,
+                index,
+                bytes: id.len(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// A leased task, decoded and validated: everything one engine call needs.
@@ -724,5 +773,43 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    #[test]
+    fn lease_requests_list_at_most_the_cached_jobs_limit_of_short_ids() {
+        let request = |jobs: usize, targets: usize, id_bytes: usize| v1::LeaseRequest {
+            worker_id: "w".into(),
+            cached_jobs: (0..jobs).map(|_| "j".repeat(id_bytes)).collect(),
+            cached_targets: (0..targets).map(|_| "t".repeat(id_bytes)).collect(),
+        };
+        let limit = MAX_CACHED_LISTED;
+        assert_eq!(
+            check_lease_request(&request(limit, limit, MAX_JOB_ID_BYTES)),
+            Ok(())
+        );
+        assert_eq!(
+            check_lease_request(&request(limit + 1, 0, 3)),
+            Err(ConvertError::CachedCount {
+                field: "cached_jobs",
+                entries: limit + 1
+            })
+        );
+        assert_eq!(
+            check_lease_request(&request(0, limit + 1, 3)),
+            Err(ConvertError::CachedCount {
+                field: "cached_targets",
+                entries: limit + 1
+            })
+        );
+        let e = check_lease_request(&request(2, 0, MAX_JOB_ID_BYTES + 1)).unwrap_err();
+        assert_eq!(
+            e,
+            ConvertError::CachedId {
+                field: "cached_jobs",
+                index: 0,
+                bytes: MAX_JOB_ID_BYTES + 1
+            }
+        );
+        assert!(e.to_string().contains("cached_jobs entry 0"), "{e}");
     }
 }

@@ -13,6 +13,9 @@
 # likelihood-differential-direct8-simplify: direct8 with simplification rounds at 1 paired
 #   standard error where the stage would end.
 # likelihood-differential-direct8-blocks-simplify: direct8 with both.
+# likelihood-direct8: the likelihood search with direct screening (every change of a sweep
+#   rendered) at 12 800 photons per source, an eighth of likelihood-differential's sweeps, the
+#   same confirmations: what differential screening is measured against (issue 19).
 # paper: the paper's search at its budget at this geometry, 4 096 photons per source per render.
 # anything else: `--search NAME` with its defaults.
 search_flags() {
@@ -45,6 +48,9 @@ search_flags() {
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800 --set refine_blocks=true
              --set refine_simplify_z=1) ;;
+    likelihood-direct8)
+      flags=(--search likelihood --set refine_screen=direct --set refine_photons=12800
+             --set refine_confirm_photons=204800 --set refine_sweeps=24) ;;
     paper) flags=(--search paper --iterations 8 --photons-per-iteration 512 --permutations 1) ;;
     *) flags=(--search "$1") ;;
   esac

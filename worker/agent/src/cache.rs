@@ -74,7 +74,7 @@ impl<T: Clone> PerJob<T> {
 pub(crate) struct GeometryCache(PerJob<Geometry>);
 
 impl GeometryCache {
-    pub const CAPACITY: usize = 64;
+    pub const CAPACITY: usize = scatterfarm_proto::convert::WORKER_CACHE_JOBS;
 
     pub fn new(capacity: usize) -> Self {
         GeometryCache(PerJob::new(capacity))
@@ -109,7 +109,7 @@ impl GeometryCache {
 pub(crate) struct TargetCache(PerJob<Arc<Target>>);
 
 impl TargetCache {
-    pub const CAPACITY: usize = 64;
+    pub const CAPACITY: usize = scatterfarm_proto::convert::WORKER_CACHE_JOBS;
     /// The most bytes of targets kept.
     pub const BYTES: usize = 512 << 20;
 

@@ -5,7 +5,8 @@ use super::Farm;
 use crate::scheduler::{Abilities, Refusal, Rendered, TaskOut};
 use scatterfarm_model::PhotonRange;
 use scatterfarm_proto::convert::{
-    fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask, TaskLease,
+    check_lease_request, fingerprint_from_proto, results_from_proto, task_to_proto, RenderTask,
+    TaskLease,
 };
 use scatterfarm_proto::differential::change_scores_from_proto;
 use scatterfarm_proto::scored::render_scores_from_proto;
@@ -108,6 +109,7 @@ impl WorkerService for WorkerApi {
         request: Request<pb::LeaseRequest>,
     ) -> Result<Response<pb::LeaseResponse>, Status> {
         let r = request.into_inner();
+        check_lease_request(&r).map_err(|e| Status::invalid_argument(e.to_string()))?;
         // Wait up to a second for work before answering "none", so idle workers do not poll
         // hard and new work starts at once.
         let until = Instant::now() + Duration::from_secs(1);
