@@ -10,9 +10,7 @@
 //! `CI=true`, where it fails.
 
 use crate::harness::gating::{chromium, skip_or_fail};
-use crate::harness::net::{
-    free_port, http, https, wait_for_file, wait_for_file_from, HttpResponse,
-};
+use crate::harness::net::{http, https, port_of, wait_for_file, wait_for_file_from, HttpResponse};
 use crate::harness::process::{output, repo_root, run, scatterfarm, Proc};
 use crate::harness::scenes::LONG_DEMO_JOB;
 use crate::harness::tls::certificates;
@@ -56,27 +54,23 @@ fn the_status_page_shows_jobs_workers_and_the_current_map() {
     };
     let dir = tempfile::tempdir().unwrap();
     let addr_file = dir.path().join("address");
-    // A free port can be taken by another test before the coordinator binds it: then it ends
-    // at once, and starts again on another.
-    let mut started = None;
-    for attempt in 1..=3 {
-        let _ = std::fs::remove_file(&addr_file);
-        let http_port = free_port();
-        let mut coordinator = scatterfarm();
-        coordinator
-            .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-            .arg(dir.path().join("data"))
-            .arg("--address-file")
-            .arg(&addr_file)
-            .args(["--http", &format!("127.0.0.1:{http_port}")]);
-        let log = dir.path().join(format!("coordinator-{attempt}.log"));
-        let mut coordinator = Proc::logged(coordinator, &log);
-        if let Some(url) = wait_for_file_from(&addr_file, &mut coordinator) {
-            started = Some((coordinator, url, http_port));
-            break;
-        }
-    }
-    let (_coordinator, url, http_port) = started.expect("the coordinator started in 3 tries");
+    let http_file = dir.path().join("http-address");
+    // Both on ports the coordinator chooses, so no other test can take them first.
+    let mut coordinator = scatterfarm();
+    coordinator
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+        .arg(dir.path().join("data"))
+        .arg("--address-file")
+        .arg(&addr_file)
+        .args(["--http", "127.0.0.1:0", "--http-address-file"])
+        .arg(&http_file);
+    let mut coordinator = Proc::logged(coordinator, &dir.path().join("coordinator.log"));
+    let url = wait_for_file_from(&addr_file, &mut coordinator)
+        .unwrap_or_else(|| panic!("the coordinator ended:\n{}", coordinator.log_text()));
+    let http_url = wait_for_file(&http_file);
+    assert!(http_url.starts_with("http://127.0.0.1:"), "{http_url}");
+    let http_port = port_of(&http_url);
+    let _coordinator = coordinator;
     let mut worker = scatterfarm();
     worker
         .args(["worker", "--engine", "cpu", "--name", "page-test-worker"])
@@ -180,17 +174,20 @@ fn the_web_face_asks_for_the_coordinators_token_unless_told_not_to() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("token"), "s3cret\n").unwrap();
     let start = |open: bool| {
-        let port = free_port();
+        let name = if open { "open" } else { "token" };
+        let http_file = dir.path().join(format!("http-address-{name}"));
         let mut c = scatterfarm();
         c.args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-            .arg(dir.path().join(if open { "data-open" } else { "data" }))
+            .arg(dir.path().join(format!("data-{name}")))
             .arg("--token-file")
             .arg(dir.path().join("token"))
-            .args(["--http", &format!("127.0.0.1:{port}")]);
+            .args(["--http", "127.0.0.1:0", "--http-address-file"])
+            .arg(&http_file);
         if open {
             c.arg("--http-open");
         }
-        (Proc::spawn(c), port)
+        let coordinator = Proc::spawn(c);
+        (coordinator, port_of(&wait_for_file(&http_file)))
     };
     let (_coordinator, port) = start(false);
     let browser = "Accept: text/html";
@@ -306,16 +303,23 @@ fn tls_coordinator(dir: &Path, data: &str, http: &str, extra: &[&str]) -> std::p
 fn with_tls_the_web_face_serves_https_with_the_grpc_certificate_and_refuses_plain_http() {
     let dir = tls_folder();
     let ca = std::fs::read_to_string(dir.path().join("ca.pem")).unwrap();
-    let port = free_port();
     let c = tls_coordinator(
         dir.path(),
         "data",
-        &format!("127.0.0.1:{port}"),
-        &["--address-file", "address"],
+        "127.0.0.1:0",
+        &[
+            "--address-file",
+            "address",
+            "--http-address-file",
+            "http-address",
+        ],
     );
     let mut coordinator = Proc::logged(c, &dir.path().join("coordinator.log"));
     // Prove it: gRPC is TLS, with the CA.
     let url = wait_for_file(&dir.path().join("address"));
+    let http_url = wait_for_file(&dir.path().join("http-address"));
+    assert!(http_url.starts_with("https://127.0.0.1:"), "{http_url}");
+    let port = port_of(&http_url);
     assert!(url.starts_with("https://"), "{url}");
     let mut jobs = scatterfarm();
     jobs.current_dir(dir.path())
@@ -392,14 +396,16 @@ fn with_tls_the_web_face_serves_https_with_the_grpc_certificate_and_refuses_plai
 fn http_plaintext_opts_out_of_tls_with_a_warning_and_bad_tls_files_are_named() {
     let dir = tls_folder();
     // Off loopback, plain HTTP next to gRPC's TLS: served, with a warning.
-    let port = free_port();
     let c = tls_coordinator(
         dir.path(),
         "data",
-        &format!("0.0.0.0:{port}"),
-        &["--http-plaintext"],
+        "0.0.0.0:0",
+        &["--http-plaintext", "--http-address-file", "http-address"],
     );
     let coordinator = Proc::logged(c, &dir.path().join("plaintext.log"));
+    let http_url = wait_for_file(&dir.path().join("http-address"));
+    assert!(http_url.starts_with("http://0.0.0.0:"), "{http_url}");
+    let port = port_of(&http_url);
     let r = http(
         port,
         "GET",
@@ -445,7 +451,7 @@ fn http_plaintext_opts_out_of_tls_with_a_warning_and_bad_tls_files_are_named() {
         c.current_dir(dir.path())
             .args(["coordinator", "--listen", "127.0.0.1:0", "--data", "bad"])
             .args(["--tls-cert", cert, "--tls-key", key])
-            .args(["--http", &format!("127.0.0.1:{}", free_port())]);
+            .args(["--http", "127.0.0.1:0"]);
         let stderr = run(c, dir.path(), limit).fails();
         assert!(
             stderr.contains(named) && stderr.contains(why),

@@ -74,6 +74,10 @@ pub struct CoordinatorArgs {
     /// on port 0 it holds the port chosen).
     #[arg(long)]
     pub address_file: Option<PathBuf>,
+    /// Write the status page's URL to this file once it listens (with --http on port 0 it
+    /// holds the port chosen); written before --address-file.
+    #[arg(long, requires = "http")]
+    pub http_address_file: Option<PathBuf>,
 }
 
 impl CoordinatorArgs {
@@ -196,6 +200,12 @@ pub fn run(args: CoordinatorArgs) -> Result<()> {
                     )
                     .await?;
                     tracing::info!("status page on {scheme}://{bound}/ (metrics on /metrics)");
+                    if let Some(path) = &args.http_address_file {
+                        scatterfarm_job::observation::write_atomically(path, |w| {
+                            writeln!(w, "{scheme}://{bound}")?;
+                            Ok(())
+                        })?;
+                    }
                     Some(tokio::spawn(web))
                 }
                 None => None,
