@@ -5,7 +5,9 @@
 //!
 //! A lease that expires also halves the speed the coordinator assumes for its worker, so the
 //! next lease of the same photons lasts twice as long: a medium far more expensive than the
-//! worker's registration benchmark gets leases it can meet after a few attempts.
+//! worker's registration benchmark gets leases it can meet after a few attempts. It doubles
+//! the worker's transfer allowance too (at least to the shortest lease), for a worker whose
+//! renders are quick but whose results crawl up a slow link.
 
 use super::{Lease, Scheduler};
 use crate::work::Purpose;
@@ -34,8 +36,9 @@ impl Scheduler {
     /// last attempt. `detail` says what happened, for the job's failure message.
     pub(super) fn piece_returned(&mut self, lease: Lease, why: Returned, detail: &str) {
         if why == Returned::Expired {
+            let min_lease = self.settings.min_lease.as_secs_f64();
             if let Some(w) = self.workers.get_mut(&lease.worker) {
-                w.photons_per_second = (w.photons_per_second / 2.0).max(1.0);
+                w.lease_expired(min_lease);
             }
         }
         let max = self.settings.max_attempts;

@@ -16,6 +16,9 @@ pub struct Lease {
     pub group: u64,
     pub piece: Piece,
     pub worker: String,
+    /// When it was leased: a result's arrival less its render time is the worker's transfer
+    /// time.
+    pub leased_at: Instant,
     pub deadline: Instant,
     pub deadline_unix_ms: u64,
 }
@@ -147,6 +150,7 @@ impl Scheduler {
                 piece.count,
                 worker.photons_per_second,
                 piece_photons_per_launch(group, &piece),
+                worker.transfer_seconds,
             );
             let task = TaskOut {
                 job: id.clone(),
@@ -173,6 +177,7 @@ impl Scheduler {
                     group: group.id,
                     piece,
                     worker: worker.id.clone(),
+                    leased_at: Instant::now(),
                     deadline: Instant::now() + lease_for,
                     deadline_unix_ms: task.deadline_unix_ms,
                 },

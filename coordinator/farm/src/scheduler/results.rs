@@ -142,6 +142,7 @@ impl Scheduler {
                 u64::from(lease.piece.count) as f64 * per_launch,
                 render_seconds,
             );
+            w.measured_transfer(lease.leased_at.elapsed().as_secs_f64(), render_seconds);
         }
         let next_group = &mut self.next_group;
         let mut new_group = super::ids(next_group);

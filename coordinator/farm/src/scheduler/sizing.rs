@@ -1,5 +1,7 @@
 //! Lease sizing: a piece holds about [`Settings::task_seconds`] of the leasing worker's work, and
-//! its lease lasts the longer of [`Settings::min_lease`] and five times the expected render time.
+//! its lease lasts the longer of [`Settings::min_lease`] and five times the expected render time,
+//! plus twice the time the worker's results take beyond their render (its uplink:
+//! [`super::registry::WorkerEntry::transfer_seconds`]).
 
 use super::Settings;
 use crate::work::{Piece, RenderGroup};
@@ -26,15 +28,53 @@ pub(super) fn max_photons(settings: &Settings, photons_per_second: f64, per_phot
     (settings.task_seconds * photons_per_second / per_photon).clamp(1.0, f64::from(u32::MAX)) as u32
 }
 
-/// How long a lease of `count` photons per source lasts.
+/// The longest lease.
+const MAX_LEASE_SECONDS: f64 = 86_400.0;
+
+/// How long a lease of `count` photons per source lasts, for a worker of `photons_per_second`
+/// whose results take `transfer_seconds` beyond their render to arrive.
 pub(super) fn lease_duration(
     settings: &Settings,
     count: u32,
     photons_per_second: f64,
     per_photon: f64,
+    transfer_seconds: f64,
 ) -> Duration {
     let expected = count as f64 * per_photon / photons_per_second;
-    settings
+    let render = settings
         .min_lease
-        .max(Duration::from_secs_f64((expected * 5.0).min(86_400.0)))
+        .as_secs_f64()
+        .max((expected * 5.0).min(MAX_LEASE_SECONDS));
+    let transfer = if transfer_seconds.is_finite() {
+        2.0 * transfer_seconds.max(0.0)
+    } else {
+        0.0
+    };
+    Duration::from_secs_f64((render + transfer).min(MAX_LEASE_SECONDS))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_lease_covers_five_renders_and_two_uploads_within_a_day() {
+        let settings = Settings {
+            min_lease: Duration::from_secs(30),
+            ..Settings::default()
+        };
+        let secs = |count, speed, transfer| {
+            lease_duration(&settings, count, speed, 10.0, transfer).as_secs_f64()
+        };
+        // 1 000 × 10 photons at 100 per second: 100 s of render, leased for 500 s.
+        assert_eq!(secs(1_000, 100.0, 0.0), 500.0);
+        // A short render gets the shortest lease, plus twice the upload.
+        assert_eq!(secs(1, 100.0, 0.0), 30.0);
+        assert_eq!(secs(1, 100.0, 7.5), 45.0);
+        assert_eq!(secs(1_000, 100.0, 50.0), 600.0);
+        // Nonsense measurements add nothing; nothing lasts beyond a day.
+        assert_eq!(secs(1, 100.0, -3.0), 30.0);
+        assert_eq!(secs(1, 100.0, f64::NAN), 30.0);
+        assert_eq!(secs(u32::MAX, 1.0, 1e9), MAX_LEASE_SECONDS);
+    }
 }
