@@ -39,7 +39,8 @@ pub struct CoordinatorArgs {
     #[arg(long, default_value_t = 2000)]
     pub heartbeat_ms: u64,
     /// The shortest lease, in seconds (a lease lasts the longer of this and 5 × the task's
-    /// expected time).
+    /// expected render time, plus twice the time the worker's results have taken to arrive
+    /// beyond their render; an expired lease doubles that allowance).
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
     /// Leases of one task before its job fails with a reason naming the task (a task whose

@@ -56,7 +56,8 @@ pub struct Settings {
     pub heartbeat: Duration,
     /// Heartbeats a worker may miss before its leases are handed out again.
     pub missed_heartbeats: u32,
-    /// The shortest lease; a lease lasts the longer of this and 5 × the expected render time.
+    /// The shortest lease; a lease lasts the longer of this and 5 × the expected render time,
+    /// plus twice the worker's transfer time ([`sizing`]).
     pub min_lease: Duration,
     /// Leases of one piece before its job fails (a piece that expires, is given back or whose
     /// result is refused is leased again, up to this many times in all).
