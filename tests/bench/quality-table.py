@@ -17,6 +17,8 @@ for f in files:
     name = d["search"]
     settings = d.get("set", [])
     # The recipe's name as searches.sh spells it, from the settings that differ.
+    if "refine_screen=direct" in settings and "refine_photons=12800" in settings:
+        name += "-direct8"
     for key, part in [("refine_screen=differential", "differential"),
                       ("refine_direct_photons=12800", "direct8"), ("refine_z=2", "z2"),
                       ("refine_swaps=true", "swaps"), ("refine_blocks=true", "blocks"),
