@@ -8,7 +8,9 @@
 //! `M` with the same seed and photons) and, per change, the sum over detected photons of
 //! `w − 1` in each (source, bin), so that a change's estimated counts are `counts + delta`.
 
-use crate::engine::{CountMatrix, Engine, EngineError, PhotonRange, RenderItem};
+use crate::engine::{
+    validate_batch, CountMatrix, Engine, EngineError, PhotonRange, RenderBatch, RenderItem,
+};
 use crate::geometry::Geometry;
 use crate::material::Material;
 use serde::{Deserialize, Serialize};
@@ -96,6 +98,27 @@ pub fn change_is_reweightable(table: &[Material], assignment: &[u16], change: &C
             .get(usize::from(m))
             .is_some_and(|from| reweightable(from, to))
     })
+}
+
+/// The one-item batch a differential render of `item` traces, once every engine's checks
+/// pass: those of any batch ([`validate_batch`]) and of the changes ([`validate_changes`]).
+pub fn differential_batch<'a>(
+    geometry: Geometry,
+    table: &'a [Material],
+    item: &'a RenderItem,
+    photons: PhotonRange,
+    changes: &[Change],
+    max_changes: usize,
+) -> Result<RenderBatch<'a>, EngineError> {
+    let batch = RenderBatch {
+        geometry,
+        table,
+        items: std::slice::from_ref(item),
+        photons,
+    };
+    validate_batch(&batch)?;
+    validate_changes(&geometry, table, changes, max_changes)?;
+    Ok(batch)
 }
 
 /// What every engine checks of a differential render's changes: at most `max` of them, every

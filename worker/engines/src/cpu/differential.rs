@@ -24,9 +24,9 @@ use crate::rng::PhotonStream;
 use crate::transport::{trace_photon_tallied, Fate, Medium, Tally};
 use rayon::prelude::*;
 use scatterfarm_model::differential::{
-    change_is_reweightable, validate_changes, Change, DifferentialOutput,
+    change_is_reweightable, differential_batch, Change, DifferentialOutput,
 };
-use scatterfarm_model::engine::{validate_batch, CountMatrix, EngineError, RenderBatch};
+use scatterfarm_model::engine::{CountMatrix, EngineError};
 use scatterfarm_model::{Geometry, Material, PhotonRange, RenderItem};
 
 /// Most changes one differential render estimates.
@@ -171,14 +171,7 @@ pub(super) fn render_differential(
     photons: PhotonRange,
     changes: &[Change],
 ) -> Result<DifferentialOutput, EngineError> {
-    let batch = RenderBatch {
-        geometry,
-        table,
-        items: std::slice::from_ref(item),
-        photons,
-    };
-    validate_batch(&batch)?;
-    validate_changes(&geometry, table, changes, MAX_CHANGES)?;
+    differential_batch(geometry, table, item, photons, changes, MAX_CHANGES)?;
     let pixels = geometry.pixels();
     let medium = Medium::new(geometry, table, &item.assignment);
     let supported: Vec<bool> = changes
@@ -322,6 +315,7 @@ pub(super) fn render_differential(
 mod tests {
     use super::*;
     use crate::CpuEngine;
+    use scatterfarm_model::engine::RenderBatch;
     use scatterfarm_model::material::builtin_material;
     use scatterfarm_model::Engine;
 

@@ -26,9 +26,9 @@ use super::submission::{
 };
 use crate::cpu::MAX_CHANGES;
 use scatterfarm_model::differential::{
-    change_is_reweightable, validate_changes, Change, DifferentialOutput,
+    change_is_reweightable, differential_batch, Change, DifferentialOutput,
 };
-use scatterfarm_model::engine::{validate_batch, CountMatrix, EngineError, RenderBatch};
+use scatterfarm_model::engine::{CountMatrix, EngineError, RenderBatch};
 use scatterfarm_model::{Geometry, Material, PhotonRange, RenderItem};
 use wgpu::util::DeviceExt;
 
@@ -75,14 +75,7 @@ pub(crate) fn render(
     photons: PhotonRange,
     changes: &[Change],
 ) -> Result<DifferentialOutput, EngineError> {
-    let batch = RenderBatch {
-        geometry,
-        table,
-        items: std::slice::from_ref(item),
-        photons,
-    };
-    validate_batch(&batch)?;
-    validate_changes(&geometry, table, changes, MAX_CHANGES)?;
+    let batch = differential_batch(geometry, table, item, photons, changes, MAX_CHANGES)?;
     if table.len() > MAX_MATERIALS {
         return Err(EngineError::Unsupported(format!(
             "{} materials in a GPU differential render; at most {MAX_MATERIALS}",
