@@ -10,10 +10,14 @@
 //!   shader).
 //! - [`cpu`]: the rayon CPU engine.
 //! - [`gpu`]: the wgpu engine (WGSL compute shader in `shaders/`), adapters and their choice.
+//! - `reweighting_check` (tests only): the check both engines' differential renders pass,
+//!   reweighted counts against direct renders of the changed map.
 
 pub mod cpu;
 pub mod gpu;
 pub mod phase;
+#[cfg(test)]
+mod reweighting_check;
 pub mod rng;
 pub mod rules;
 pub mod transport;

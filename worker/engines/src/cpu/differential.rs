@@ -513,67 +513,21 @@ mod tests {
                 pixels: vec![(15, 3), (14, 1)],
             },
         ];
-        let sources = geometry().sources();
-        let bins = geometry().bins();
-        let per_source = |row: &dyn Fn(usize) -> f64| -> Vec<f64> {
-            (0..sources)
-                .map(|s| (0..bins).map(|b| row(s * bins + b)).sum())
-                .collect()
-        };
         let seeds = [31u64, 32, 33, 34];
         let renders: Vec<DifferentialOutput> = seeds
             .iter()
             .map(|&s| differential(&a, s, photons, &cases))
             .collect();
-        // Per source: mean and variance of the mean over the seeds.
-        let moments = |runs: &[Vec<f64>]| -> (Vec<f64>, Vec<f64>) {
-            let k = runs.len() as f64;
-            (0..sources)
-                .map(|s| {
-                    let mean = runs.iter().map(|r| r[s]).sum::<f64>() / k;
-                    let var = runs.iter().map(|r| (r[s] - mean).powi(2)).sum::<f64>() / (k - 1.0);
-                    (mean, var / k)
-                })
-                .unzip()
-        };
-        let base: Vec<Vec<f64>> = renders
+        let direct: Vec<Vec<_>> = cases
             .iter()
-            .map(|r| per_source(&|i| f64::from(r.counts.counts[i])))
+            .map(|change| {
+                let changed = apply(&a, change);
+                seeds
+                    .iter()
+                    .map(|&s| plain(&changed, s + 1000, photons))
+                    .collect()
+            })
             .collect();
-        for (k, change) in cases.iter().enumerate() {
-            let est: Vec<Vec<f64>> = renders
-                .iter()
-                .map(|r| {
-                    let delta = r.deltas[k].as_ref().unwrap();
-                    per_source(&|i| f64::from(r.counts.counts[i]) + delta[i])
-                })
-                .collect();
-            let changed = apply(&a, change);
-            let direct: Vec<Vec<f64>> = seeds
-                .iter()
-                .map(|&s| {
-                    let c = plain(&changed, s + 1000, photons);
-                    per_source(&|i| f64::from(c.counts[i]))
-                })
-                .collect();
-            let chi2 = |x: &[Vec<f64>]| {
-                let (mx, vx) = moments(x);
-                let (md, vd) = moments(&direct);
-                (0..sources)
-                    .map(|s| (mx[s] - md[s]).powi(2) / (vx[s] + vd[s]).max(1e-9))
-                    .sum::<f64>()
-            };
-            let (agree, apart) = (chi2(&est), chi2(&base));
-            let n = sources as f64;
-            // With four seeds a term is a squared t with 6 degrees of freedom: mean 1.5.
-            assert!(
-                agree < 3.0 * n,
-                "change {k}: χ² {agree:.1} over {n} sources"
-            );
-            assert!(
-                apart > 3.0 * agree && apart > 6.0 * n,
-                "change {k}: the unchanged map is told apart (χ² {apart:.1}; reweighted {agree:.1})"
-            );
-        }
+        crate::reweighting_check::assert_reweighting_agrees(&geometry(), &renders, &direct);
     }
 }

@@ -1,0 +1,72 @@
+//! The check both engines' differential tests make (test builds only): reweighted counts of a
+//! change agree with direct renders of the changed map, where the unchanged map's do not.
+
+use scatterfarm_model::differential::DifferentialOutput;
+use scatterfarm_model::{CountMatrix, Geometry};
+
+/// Per source: the sum of `row(source × bins + bin)` over the bins.
+fn per_source(geometry: &Geometry, row: &dyn Fn(usize) -> f64) -> Vec<f64> {
+    let bins = geometry.bins();
+    (0..geometry.sources())
+        .map(|s| (0..bins).map(|b| row(s * bins + b)).sum())
+        .collect()
+}
+
+/// Per source: the mean over the runs and the variance of that mean.
+fn moments(runs: &[Vec<f64>]) -> (Vec<f64>, Vec<f64>) {
+    let k = runs.len() as f64;
+    (0..runs[0].len())
+        .map(|s| {
+            let mean = runs.iter().map(|r| r[s]).sum::<f64>() / k;
+            let var = runs.iter().map(|r| (r[s] - mean).powi(2)).sum::<f64>() / (k - 1.0);
+            (mean, var / k)
+        })
+        .unzip()
+}
+
+/// χ² over the sources between the means of `x` and of `y`.
+fn chi2(x: &[Vec<f64>], y: &[Vec<f64>]) -> f64 {
+    let (mx, vx) = moments(x);
+    let (my, vy) = moments(y);
+    (0..mx.len())
+        .map(|s| (mx[s] - my[s]).powi(2) / (vx[s] + vy[s]).max(1e-9))
+        .sum()
+}
+
+/// Asserts that, per change `k`, the per-source totals of `renders` (differential renders of
+/// one map on several seeds) reweighted by their deltas agree with `direct[k]` (direct renders
+/// of the changed map on as many other seeds), and that the unchanged totals are told apart.
+pub(crate) fn assert_reweighting_agrees(
+    geometry: &Geometry,
+    renders: &[DifferentialOutput],
+    direct: &[Vec<CountMatrix>],
+) {
+    let base: Vec<Vec<f64>> = renders
+        .iter()
+        .map(|r| per_source(geometry, &|i| f64::from(r.counts.counts[i])))
+        .collect();
+    let n = geometry.sources() as f64;
+    for (k, direct) in direct.iter().enumerate() {
+        let est: Vec<Vec<f64>> = renders
+            .iter()
+            .map(|r| {
+                let delta = r.deltas[k].as_ref().expect("the change is reweightable");
+                per_source(geometry, &|i| f64::from(r.counts.counts[i]) + delta[i])
+            })
+            .collect();
+        let direct: Vec<Vec<f64>> = direct
+            .iter()
+            .map(|c| per_source(geometry, &|i| f64::from(c.counts[i])))
+            .collect();
+        let (agree, apart) = (chi2(&est, &direct), chi2(&base, &direct));
+        // With four seeds a term is a squared t with 6 degrees of freedom: mean 1.5.
+        assert!(
+            agree < 3.0 * n,
+            "change {k}: χ² {agree:.1} over {n} sources"
+        );
+        assert!(
+            apart > 3.0 * agree && apart > 6.0 * n,
+            "change {k}: the unchanged map is told apart (χ² {apart:.1}; reweighted {agree:.1})"
+        );
+    }
+}
