@@ -21,8 +21,8 @@ use super::dispatch_plan::{self, Chunk};
 use super::engine::Tuning;
 use super::records::{Differential, HostLayout, Physics, PARAMS_BYTES};
 use super::submission::{
-    fewer_per_invocation, map_and_wait, param_records, scatter_bytes, split_cut_short, whole,
-    Rendered, Work,
+    bind_records_and_buffers, fewer_per_invocation, map_and_wait, param_records, scatter_bytes,
+    split_cut_short, Rendered, Work,
 };
 use crate::cpu::MAX_CHANGES;
 use scatterfarm_model::differential::{
@@ -347,28 +347,22 @@ fn readback(gpu: &GpuDevice, label: &str, size: u64) -> wgpu::Buffer {
 }
 
 fn bind_group(gpu: &GpuDevice, b: &Buffers) -> wgpu::BindGroup {
-    gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("differential bind group"),
-        layout: &gpu.differential_layout,
-        entries: &[
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                    buffer: &b.params,
-                    offset: 0,
-                    size: wgpu::BufferSize::new(PARAMS_BYTES),
-                }),
-            },
-            whole(1, &b.sources),
-            whole(2, &b.medium),
-            whole(3, &b.seeds),
-            whole(4, &b.counts),
-            whole(5, &b.scatters),
-            whole(6, &b.sizes),
-            whole(7, &b.factors),
-            whole(8, &b.physics),
-            whole(9, &b.scratch),
-            whole(10, &b.deltas),
+    bind_records_and_buffers(
+        gpu,
+        "differential bind group",
+        &gpu.differential_layout,
+        &b.params,
+        &[
+            &b.sources,
+            &b.medium,
+            &b.seeds,
+            &b.counts,
+            &b.scatters,
+            &b.sizes,
+            &b.factors,
+            &b.physics,
+            &b.scratch,
+            &b.deltas,
         ],
-    })
+    )
 }

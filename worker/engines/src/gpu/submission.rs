@@ -196,24 +196,45 @@ fn create_buffers(
 
 /// The bind group: one parameter record (its offset set per dispatch), then the whole buffers.
 fn bind_group(gpu: &GpuDevice, buffers: &Buffers) -> wgpu::BindGroup {
-    gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("transport bind group"),
-        layout: &gpu.layout,
-        entries: &[
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                    buffer: &buffers.params,
-                    offset: 0,
-                    size: wgpu::BufferSize::new(PARAMS_BYTES),
-                }),
-            },
-            whole(1, &buffers.sources),
-            whole(2, &buffers.medium),
-            whole(3, &buffers.seeds),
-            whole(4, &buffers.counts),
-            whole(5, &buffers.scatters),
+    bind_records_and_buffers(
+        gpu,
+        "transport bind group",
+        &gpu.layout,
+        &buffers.params,
+        &[
+            &buffers.sources,
+            &buffers.medium,
+            &buffers.seeds,
+            &buffers.counts,
+            &buffers.scatters,
         ],
+    )
+}
+
+/// A bind group of `layout`: binding 0 one parameter record of `params` (its offset set per
+/// dispatch), bindings 1, 2, … the whole of each of `buffers`.
+pub(super) fn bind_records_and_buffers(
+    gpu: &GpuDevice,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    params: &wgpu::Buffer,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let record = wgpu::BindGroupEntry {
+        binding: 0,
+        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: params,
+            offset: 0,
+            size: wgpu::BufferSize::new(PARAMS_BYTES),
+        }),
+    };
+    let entries: Vec<wgpu::BindGroupEntry> = std::iter::once(record)
+        .chain((1..).zip(buffers).map(|(i, b)| whole(i, b)))
+        .collect();
+    gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
     })
 }
 
