@@ -21,8 +21,8 @@ use super::dispatch_plan::{self, Chunk};
 use super::engine::Tuning;
 use super::records::{Differential, HostLayout, Physics, PARAMS_BYTES};
 use super::submission::{
-    bind_records_and_buffers, fewer_per_invocation, map_and_wait, param_records, scatter_bytes,
-    split_cut_short, Rendered, Work,
+    bind_records_and_buffers, encode_and_submit, fewer_per_invocation, map_and_wait, param_records,
+    scatter_bytes, split_cut_short, Rendered, Work,
 };
 use crate::cpu::MAX_CHANGES;
 use scatterfarm_model::differential::{
@@ -236,30 +236,19 @@ fn render_chunk(
     let counts_read = readback(gpu, "counts readback", buffers.counts.size());
     let scatters_read = readback(gpu, "scatters readback", buffers.scatters.size());
     let deltas_read = readback(gpu, "deltas readback", buffers.deltas.size());
-    let mut encoder = gpu
-        .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("differential render"),
-        });
-    {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("differential"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&gpu.differential);
-        for (k, d) in work.dispatches.iter().enumerate() {
-            pass.set_bind_group(0, &bind_group, &[(k as u64 * stride) as u32]);
-            pass.dispatch_workgroups(d.count.div_ceil(WORKGROUP_SIZE), 1, 1);
-        }
-    }
-    for (from, to) in [
-        (&buffers.counts, &counts_read),
-        (&buffers.scatters, &scatters_read),
-        (&buffers.deltas, &deltas_read),
-    ] {
-        encoder.copy_buffer_to_buffer(from, 0, to, 0, from.size());
-    }
-    gpu.queue.submit(Some(encoder.finish()));
+    encode_and_submit(
+        gpu,
+        &gpu.differential,
+        "differential",
+        &bind_group,
+        &work.dispatches,
+        stride,
+        &[
+            (&buffers.counts, &counts_read),
+            (&buffers.scatters, &scatters_read),
+            (&buffers.deltas, &deltas_read),
+        ],
+    );
     let words = map_and_wait(gpu, &[&counts_read, &scatters_read, &deltas_read])?;
     let (scatters, cut_short) = split_cut_short(words[1].clone());
     if cut_short > 0 {

@@ -114,7 +114,18 @@ pub(crate) fn render_chunk(
     let params = param_records(batch, chunk, &work, stride);
     let buffers = create_buffers(gpu, batch, host, chunk, &params);
     let bind_group = bind_group(gpu, &buffers);
-    encode_and_submit(gpu, &bind_group, &buffers, &work.dispatches, stride);
+    encode_and_submit(
+        gpu,
+        &gpu.pipeline,
+        "transport",
+        &bind_group,
+        &work.dispatches,
+        stride,
+        &[
+            (&buffers.counts, &buffers.counts_read),
+            (&buffers.scatters, &buffers.scatters_read),
+        ],
+    );
     let tallies = read_back(gpu, &buffers)?;
     if tallies.cut_short > 0 {
         return Ok(Rendered::CutShort(tallies.cut_short));
@@ -238,45 +249,34 @@ pub(super) fn bind_records_and_buffers(
     })
 }
 
-/// One compute pass of the bounded dispatches (each with its own parameter record), then copies
-/// of the tallies to the readback buffers; submitted.
-fn encode_and_submit(
+/// One compute pass of `pipeline` over the bounded dispatches (each with its own parameter
+/// record), then the copies `(from, to)` of the tallies to their readback buffers; submitted.
+pub(super) fn encode_and_submit(
     gpu: &GpuDevice,
+    pipeline: &wgpu::ComputePipeline,
+    label: &str,
     bind_group: &wgpu::BindGroup,
-    buffers: &Buffers,
     dispatches: &[Dispatch],
     stride: u64,
+    copies: &[(&wgpu::Buffer, &wgpu::Buffer)],
 ) {
     let mut encoder = gpu
         .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("render"),
-        });
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
     {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("transport"),
+            label: Some(label),
             timestamp_writes: None,
         });
-        pass.set_pipeline(&gpu.pipeline);
+        pass.set_pipeline(pipeline);
         for (k, d) in dispatches.iter().enumerate() {
             pass.set_bind_group(0, bind_group, &[(k as u64 * stride) as u32]);
             pass.dispatch_workgroups(d.count.div_ceil(WORKGROUP_SIZE), 1, 1);
         }
     }
-    encoder.copy_buffer_to_buffer(
-        &buffers.counts,
-        0,
-        &buffers.counts_read,
-        0,
-        buffers.counts.size(),
-    );
-    encoder.copy_buffer_to_buffer(
-        &buffers.scatters,
-        0,
-        &buffers.scatters_read,
-        0,
-        buffers.scatters.size(),
-    );
+    for (from, to) in copies {
+        encoder.copy_buffer_to_buffer(from, 0, to, 0, from.size());
+    }
     gpu.queue.submit(Some(encoder.finish()));
 }
 
