@@ -10,8 +10,8 @@
 //!   shader).
 //! - [`cpu`]: the rayon CPU engine.
 //! - [`gpu`]: the wgpu engine (WGSL compute shader in `shaders/`), adapters and their choice.
-//! - `reweighting_check` (tests only): the check both engines' differential renders pass,
-//!   reweighted counts against direct renders of the changed map.
+//! - `reweighting_check` (tests only): the scene both engines' differential tests render, and
+//!   the check they pass: reweighted counts against direct renders of the changed map.
 
 pub mod cpu;
 pub mod gpu;

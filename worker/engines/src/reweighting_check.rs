@@ -1,8 +1,48 @@
-//! The check both engines' differential tests make (test builds only): reweighted counts of a
-//! change agree with direct renders of the changed map, where the unchanged map's do not.
+//! What both engines' differential tests share (test builds only): the scene they render, and
+//! the check that reweighted counts of a change agree with direct renders of the changed map,
+//! where the unchanged map's do not.
 
-use scatterfarm_model::differential::DifferentialOutput;
-use scatterfarm_model::{CountMatrix, Geometry};
+use scatterfarm_model::differential::{Change, DifferentialOutput};
+use scatterfarm_model::material::builtin_material;
+use scatterfarm_model::{CountMatrix, Geometry, Material};
+
+/// A 4×4 grid of 16 mm with 8 positions × 3 directions.
+pub(crate) fn geometry() -> Geometry {
+    Geometry::new(16.0, 4, 8, 3).unwrap()
+}
+
+/// `moderate`, `mild`, `back`, `uniform`, opaque, transmissive, and `moderate` with g 0.5.
+pub(crate) fn table() -> Vec<Material> {
+    ["moderate", "mild", "back", "uniform"]
+        .iter()
+        .map(|n| builtin_material(n).unwrap())
+        .chain([
+            Material::OPAQUE,
+            Material::TRANSMISSIVE,
+            // `moderate` with another g.
+            Material::new(0.6, 0.01, 0.5).unwrap(),
+        ])
+        .collect()
+}
+
+/// A 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.
+pub(crate) fn map() -> Vec<u16> {
+    let mut a = vec![0u16; 16];
+    for p in [5, 6, 9, 10] {
+        a[p] = 1;
+    }
+    a[15] = 2;
+    a
+}
+
+/// `assignment` with `change` made.
+pub(crate) fn apply(assignment: &[u16], change: &Change) -> Vec<u16> {
+    let mut a = assignment.to_vec();
+    for &(p, d) in &change.pixels {
+        a[p as usize] = d;
+    }
+    a
+}
 
 /// Per source: the sum of `row(source × bins + bin)` over the bins.
 fn per_source(geometry: &Geometry, row: &dyn Fn(usize) -> f64) -> Vec<f64> {

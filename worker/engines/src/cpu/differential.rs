@@ -314,27 +314,10 @@ pub(super) fn render_differential(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::reweighting_check::{apply, geometry, map, table};
     use crate::CpuEngine;
     use scatterfarm_model::engine::RenderBatch;
-    use scatterfarm_model::material::builtin_material;
     use scatterfarm_model::Engine;
-
-    fn geometry() -> Geometry {
-        Geometry::new(16.0, 4, 8, 3).unwrap()
-    }
-
-    fn table() -> Vec<Material> {
-        ["moderate", "mild", "back", "uniform"]
-            .iter()
-            .map(|n| builtin_material(n).unwrap())
-            .chain([
-                Material::OPAQUE,
-                Material::TRANSMISSIVE,
-                // `moderate` with another g.
-                Material::new(0.6, 0.01, 0.5).unwrap(),
-            ])
-            .collect()
-    }
 
     fn plain(assignment: &[u16], seed: u64, photons: u32) -> CountMatrix {
         let items = [RenderItem {
@@ -372,25 +355,6 @@ mod tests {
                 changes,
             )
             .unwrap()
-    }
-
-    fn apply(assignment: &[u16], change: &Change) -> Vec<u16> {
-        let mut a = assignment.to_vec();
-        for &(p, d) in &change.pixels {
-            a[p as usize] = d;
-        }
-        a
-    }
-
-    /// A map with a 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.
-    fn map() -> Vec<u16> {
-        let mut a = vec![0u16; 16];
-        a[5] = 1;
-        a[6] = 1;
-        a[9] = 1;
-        a[10] = 1;
-        a[15] = 2;
-        a
     }
 
     #[test]

@@ -5,37 +5,10 @@
 use super::engine::Tuning;
 use super::tests::engine_or_skip;
 use super::GpuEngine;
+use crate::reweighting_check::{apply, geometry, map, table};
 use scatterfarm_model::differential::{Change, DifferentialOutput};
 use scatterfarm_model::engine::{CountMatrix, Engine, EngineError, RenderBatch};
-use scatterfarm_model::material::builtin_material;
-use scatterfarm_model::{Geometry, Material, PhotonRange, RenderItem};
-
-fn geometry() -> Geometry {
-    Geometry::new(16.0, 4, 8, 3).unwrap()
-}
-
-fn table() -> Vec<Material> {
-    ["moderate", "mild", "back", "uniform"]
-        .iter()
-        .map(|n| builtin_material(n).unwrap())
-        .chain([
-            Material::OPAQUE,
-            Material::TRANSMISSIVE,
-            // `moderate` with another g.
-            Material::new(0.6, 0.01, 0.5).unwrap(),
-        ])
-        .collect()
-}
-
-/// A 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.
-fn map() -> Vec<u16> {
-    let mut a = vec![0u16; 16];
-    for p in [5, 6, 9, 10] {
-        a[p] = 1;
-    }
-    a[15] = 2;
-    a
-}
+use scatterfarm_model::{PhotonRange, RenderItem};
 
 fn item(assignment: &[u16], seed: u64) -> RenderItem {
     RenderItem {
@@ -73,14 +46,6 @@ fn differential(
         changes,
     )
     .unwrap()
-}
-
-fn apply(assignment: &[u16], change: &Change) -> Vec<u16> {
-    let mut a = assignment.to_vec();
-    for &(p, d) in &change.pixels {
-        a[p as usize] = d;
-    }
-    a
 }
 
 fn change(pixels: &[(u32, u16)]) -> Change {
