@@ -4,12 +4,13 @@
 // those collisions) in the pixels some change touches, and for every detected photon its weight
 // under each change added, as `w − 1` in fixed point, to that change's (row, bin).
 //
-// The march is `main`'s, step for step: the same blocks, the same positions, the same random
-// words, so the counts are those of a plain render. What the tally needs is computed beside it: a
-// straight piece inside a block is split into its pixels by a grid walk that moves nothing, and a
-// collision's pixel is the pixel of its position within the block. Exits are tallied at once
-// (this entry point does not batch them in rounds: a detected photon's weights are computed from
-// its own tally before the next photon starts).
+// The march is `main`'s, step for step, through the same `block_ahead` and `leave_block`: the
+// same blocks, the same positions, the same random words, so the counts are those of a plain
+// render. What the tally needs is computed beside it: a straight piece inside a block is split
+// into its pixels by a grid walk that moves nothing, and a collision's pixel is the pixel of its
+// position within the block. Exits are tallied at once (this entry point does not batch them in
+// rounds: a detected photon's weights are computed from its own tally before the next photon
+// starts).
 //
 // Per invocation, a slot of `scratch` (`diff.slot_words` words; invocation `gid.x` of a dispatch
 // uses slot `gid.x`, left clean for the next dispatch) holds:
@@ -261,19 +262,16 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     slot_base = gid.x * diff.slot_words;
     touched_count = 0u;
-    let task = params.task_first + gid.x;
-    let row = task / params.splits;
-    let run = task % params.splits;
-    let item = row / params.source_count;
-    let source = params.source_first + row % params.source_count;
-    let run_first = run * params.per_invocation;
-    var left = min(params.per_invocation, params.photon_count - run_first);
-    var photon = params.photon_first + run_first;
+    let r = run_of_task(params.task_first + gid.x);
+    let row = r.row;
+    let item = r.item;
+    let source = r.source;
+    var left = r.photons;
+    var photon = r.photon_first;
 
     let ray = sources[source];
     let seed = seeds[item];
     let n = i32(params.grid);
-    let h = params.pixel;
     let cell_base = item * params.grid * params.grid;
     let tally_base = row * params.sources;
     let start = vec2<i32>(ray.start);
@@ -313,32 +311,20 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
             var tau = -log(to_uniform(words.x));
             let step = vec2<i32>(select(-1, 1, dir.x > 0.0), select(-1, 1, dir.y > 0.0));
             loop {
-                let side = 1 << u32(m.y);
-                let lo = cell & vec2<i32>(-side);
-                let ahead = select(vec2<i32>(0), vec2<i32>(side), step > vec2<i32>(0));
-                let wall = vec2<f32>(lo + ahead) * h;
-                let t_wall = select(vec2<f32>(FAR), max((wall - pos) / dir, vec2<f32>(0.0)), dir != vec2<f32>(0.0));
-                let t_exit = min(t_wall.x, t_wall.y);
-                let spend = m.x * t_exit;
+                let b = block_ahead(cell, m, pos, dir, step);
+                let spend = m.x * b.t_exit;
                 if (spend >= tau) {
                     let length = tau / m.x;
-                    tally_piece(pos, dir, length, lo, side);
+                    tally_piece(pos, dir, length, b.lo, b.side);
                     pos += length * dir;
                     break;
                 }
-                tally_piece(pos, dir, t_exit, lo, side);
+                tally_piece(pos, dir, b.t_exit, b.lo, b.side);
                 tau -= spend;
-                let corner = abs(t_wall.x - t_wall.y) <= params.corner_tol;
-                let cross = vec2<bool>(corner || t_wall.x < t_wall.y, corner || t_wall.y < t_wall.x);
-                pos = select(pos + t_exit * dir, wall, cross);
-                let free_x = !cross.x;
-                let along = grid_index(
-                    select(pos.y, pos.x, free_x),
-                    select(select(dir.x, dir.y, dir.y != 0.0), select(-dir.y, dir.x, dir.x != 0.0), free_x),
-                );
-                let beyond = lo + select(vec2<i32>(-1), vec2<i32>(side), step > vec2<i32>(0));
-                cell = select(vec2<i32>(along), beyond, cross);
-                if (any((cell < vec2<i32>(0)) | (cell >= vec2<i32>(n)))) {
+                let crossed = leave_block(b, pos, dir, step);
+                pos = crossed.pos;
+                cell = crossed.cell;
+                if (outside_grid(cell)) {
                     break;
                 }
                 m = medium[cell_base + u32(cell.y * n + cell.x)];

@@ -103,6 +103,76 @@ fn grid_index(x: f32, side: f32) -> i32 {
     return i32(floor(u));
 }
 
+// One invocation's run of photons (see "Work layout"): its chunk row, that row's item and source,
+// and the photons it follows.
+struct Run {
+    row: u32,
+    item: u32,
+    source: u32,
+    photon_first: u32,
+    photons: u32,
+}
+
+fn run_of_task(task: u32) -> Run {
+    let row = task / params.splits;
+    let run = task % params.splits;
+    let run_first = run * params.per_invocation;
+    return Run(
+        row,
+        row / params.source_count,
+        params.source_first + row % params.source_count,
+        params.photon_first + run_first,
+        min(params.per_invocation, params.photon_count - run_first),
+    );
+}
+
+// The block the march is in (see "Traversal"): 2^L pixels a side, aligned, its lowest pixel, the
+// walls ahead and the distances along the ray to them (an axis the ray does not move along has no
+// wall ahead: its quotient is dropped), and the distance to the nearer one.
+struct Block {
+    side: i32,
+    lo: vec2<i32>,
+    wall: vec2<f32>,
+    t_wall: vec2<f32>,
+    t_exit: f32,
+}
+
+// The block of pixel `cell` (record `m`) for a ray at `pos` moving along `dir` (signs `step`).
+fn block_ahead(cell: vec2<i32>, m: vec4<f32>, pos: vec2<f32>, dir: vec2<f32>, step: vec2<i32>) -> Block {
+    let side = 1 << u32(m.y);
+    let lo = cell & vec2<i32>(-side);
+    let ahead = select(vec2<i32>(0), vec2<i32>(side), step > vec2<i32>(0));
+    let wall = vec2<f32>(lo + ahead) * params.pixel;
+    let t_wall = select(vec2<f32>(FAR), max((wall - pos) / dir, vec2<f32>(0.0)), dir != vec2<f32>(0.0));
+    return Block(side, lo, wall, t_wall, min(t_wall.x, t_wall.y));
+}
+
+// Where the ray is once it has left block `b`: the point on the wall and the pixel beyond it.
+struct Crossing {
+    pos: vec2<f32>,
+    cell: vec2<i32>,
+}
+
+// Leaves block `b` through one wall, or through a corner (diagonally). The pixel along the wall
+// crossed (unless both were, at a corner): the ray's direction along it, or for a ray running
+// along it, its left normal, picks the side of a grid line. The pixel may lie outside the grid.
+fn leave_block(b: Block, pos: vec2<f32>, dir: vec2<f32>, step: vec2<i32>) -> Crossing {
+    let corner = abs(b.t_wall.x - b.t_wall.y) <= params.corner_tol;
+    let cross = vec2<bool>(corner || b.t_wall.x < b.t_wall.y, corner || b.t_wall.y < b.t_wall.x);
+    let at = select(pos + b.t_exit * dir, b.wall, cross);
+    let free_x = !cross.x;
+    let along = grid_index(
+        select(at.y, at.x, free_x),
+        select(select(dir.x, dir.y, dir.y != 0.0), select(-dir.y, dir.x, dir.x != 0.0), free_x),
+    );
+    let beyond = b.lo + select(vec2<i32>(-1), vec2<i32>(b.side), step > vec2<i32>(0));
+    return Crossing(at, select(vec2<i32>(along), beyond, cross));
+}
+
+fn outside_grid(cell: vec2<i32>) -> bool {
+    return any((cell < vec2<i32>(0)) | (cell >= vec2<i32>(i32(params.grid))));
+}
+
 // sin(a) for a ∈ [0, π/2], from a² (Taylor to a¹¹: error below 6e-8).
 fn sin_quadrant(a: f32, a2: f32) -> f32 {
     let p = -1.0 / 39916800.0;
@@ -151,19 +221,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     // Which row (item, source) and which run of photons this invocation follows.
-    let task = params.task_first + gid.x;
-    let row = task / params.splits;
-    let run = task % params.splits;
-    let item = row / params.source_count;
-    let source = params.source_first + row % params.source_count;
-    let run_first = run * params.per_invocation;
-    var left = min(params.per_invocation, params.photon_count - run_first);
-    var photon = params.photon_first + run_first;
+    let r = run_of_task(params.task_first + gid.x);
+    let row = r.row;
+    let item = r.item;
+    let source = r.source;
+    var left = r.photons;
+    var photon = r.photon_first;
 
     let ray = sources[source];
     let seed = seeds[item];
     let n = i32(params.grid);
-    let h = params.pixel;
     let cell_base = item * params.grid * params.grid;
     let tally_base = row * params.sources;
     let start = vec2<i32>(ray.start);
@@ -217,36 +284,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             var tau = -log(to_uniform(words.x));
             let step = vec2<i32>(select(-1, 1, dir.x > 0.0), select(-1, 1, dir.y > 0.0));
             loop {
-                // The block: 2^L pixels a side, aligned; the walls ahead and the distances to them
-                // (an axis the ray does not move along has no wall ahead: its quotient is dropped).
-                let side = 1 << u32(m.y);
-                let lo = cell & vec2<i32>(-side);
-                let ahead = select(vec2<i32>(0), vec2<i32>(side), step > vec2<i32>(0));
-                let wall = vec2<f32>(lo + ahead) * h;
-                let t_wall = select(vec2<f32>(FAR), max((wall - pos) / dir, vec2<f32>(0.0)), dir != vec2<f32>(0.0));
-                let t_exit = min(t_wall.x, t_wall.y);
-                let spend = m.x * t_exit;
+                let b = block_ahead(cell, m, pos, dir, step);
+                let spend = m.x * b.t_exit;
                 if (spend >= tau) {
                     // τ runs out in this block (σt > 0 here, since τ > 0): a collision.
                     pos += (tau / m.x) * dir;
                     break;
                 }
                 tau -= spend;
-                // Leave the block through one wall, or through a corner (diagonally).
-                let corner = abs(t_wall.x - t_wall.y) <= params.corner_tol;
-                let cross = vec2<bool>(corner || t_wall.x < t_wall.y, corner || t_wall.y < t_wall.x);
-                pos = select(pos + t_exit * dir, wall, cross);
-                // The pixel along the wall crossed (unless both were, at a corner): the ray's
-                // direction along it, or for a ray running along it, its left normal, picks the
-                // side of a grid line.
-                let free_x = !cross.x;
-                let along = grid_index(
-                    select(pos.y, pos.x, free_x),
-                    select(select(dir.x, dir.y, dir.y != 0.0), select(-dir.y, dir.x, dir.x != 0.0), free_x),
-                );
-                let beyond = lo + select(vec2<i32>(-1), vec2<i32>(side), step > vec2<i32>(0));
-                cell = select(vec2<i32>(along), beyond, cross);
-                if (any((cell < vec2<i32>(0)) | (cell >= vec2<i32>(n)))) {
+                let crossed = leave_block(b, pos, dir, step);
+                pos = crossed.pos;
+                cell = crossed.cell;
+                if (outside_grid(cell)) {
                     break;
                 }
                 m = medium[cell_base + u32(cell.y * n + cell.x)];
