@@ -10,6 +10,9 @@
 # adds -name to the file names (two builds side by side); KEEP=folder keeps each run's pictures;
 # TARGET_PHOTONS=n renders the targets with n photons per source instead of the bench's 200 000
 # (and adds -target<n> to the file names).
+# The whole script is read before it runs (one block, `exit` inside it): a queue that runs for
+# hours is not changed by an edit of this file meanwhile.
+{
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 SCENES=${SCENES:-fig7a,fig7b,fig7c,fig7d,fig7e,fig7f,fig7g,fig7h,fig7i,fig7j,fig7k,fig7l,phantom16}
@@ -37,3 +40,5 @@ for search in $SEARCHES; do
     echo "$search $scene rc=$rc"
   done
 done
+exit
+}
