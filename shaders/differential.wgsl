@@ -263,19 +263,13 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
     slot_base = gid.x * diff.slot_words;
     touched_count = 0u;
     let r = run_of_task(params.task_first + gid.x);
-    let row = r.row;
-    let item = r.item;
-    let source = r.source;
     var left = r.photons;
     var photon = r.photon_first;
-
-    let ray = sources[source];
-    let seed = seeds[item];
+    let ray = sources[r.source];
+    let seed = seeds[r.item];
     let n = i32(params.grid);
-    let cell_base = item * params.grid * params.grid;
-    let tally_base = row * params.sources;
     let start = vec2<i32>(ray.start);
-    let m_start = medium[cell_base + u32(start.y * n + start.x)];
+    let m_start = medium[r.cell_base + u32(start.y * n + start.x)];
     if (m_start.x < 0.0) {
         return;
     }
@@ -297,7 +291,7 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
                     break;
                 }
                 left -= 1u;
-                rng_start(seed, source, photon);
+                rng_start(seed, r.source, photon);
                 photon += 1u;
                 pos = ray.origin;
                 dir = ray.dir;
@@ -327,7 +321,7 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
                 if (outside_grid(cell)) {
                     break;
                 }
-                m = medium[cell_base + u32(cell.y * n + cell.x)];
+                m = medium[r.cell_base + u32(cell.y * n + cell.x)];
                 if (m.x < 0.0) {
                     break;
                 }
@@ -336,18 +330,18 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
 
             if (any(out)) {
                 let bin = bin_of_exit(exit_arc_length(pos, out, step), dir);
-                atomicAdd(&counts[tally_base + bin], 1u);
-                finish_photon(true, row, bin);
+                atomicAdd(&counts[r.tally_base + bin], 1u);
+                finish_photon(true, r.row, bin);
                 alive = false;
                 continue;
             }
             if (m.x < 0.0) {
-                finish_photon(false, row, 0u);
+                finish_photon(false, r.row, 0u);
                 alive = false;
                 continue;
             }
             if (to_uniform(words.y) < m.z) {
-                finish_photon(false, row, 0u);
+                finish_photon(false, r.row, 0u);
                 alive = false;
                 continue;
             }
@@ -367,5 +361,5 @@ fn differential(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     end_of_run(finished);
-    add_scatter_events(item, vec2<u32>(events_lo, events_hi));
+    add_scatter_events(r.item, vec2<u32>(events_lo, events_hi));
 }

@@ -104,25 +104,30 @@ fn grid_index(x: f32, side: f32) -> i32 {
 }
 
 // One invocation's run of photons (see "Work layout"): its chunk row, that row's item and source,
-// and the photons it follows.
+// the photons it follows, and where the item's medium records and the row's counts begin.
 struct Run {
     row: u32,
     item: u32,
     source: u32,
     photon_first: u32,
     photons: u32,
+    cell_base: u32,
+    tally_base: u32,
 }
 
 fn run_of_task(task: u32) -> Run {
     let row = task / params.splits;
     let run = task % params.splits;
     let run_first = run * params.per_invocation;
+    let item = row / params.source_count;
     return Run(
         row,
-        row / params.source_count,
+        item,
         params.source_first + row % params.source_count,
         params.photon_first + run_first,
         min(params.per_invocation, params.photon_count - run_first),
+        item * params.grid * params.grid,
+        row * params.sources,
     );
 }
 
@@ -222,19 +227,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     // Which row (item, source) and which run of photons this invocation follows.
     let r = run_of_task(params.task_first + gid.x);
-    let row = r.row;
-    let item = r.item;
-    let source = r.source;
     var left = r.photons;
     var photon = r.photon_first;
-
-    let ray = sources[source];
-    let seed = seeds[item];
+    let ray = sources[r.source];
+    let seed = seeds[r.item];
     let n = i32(params.grid);
-    let cell_base = item * params.grid * params.grid;
-    let tally_base = row * params.sources;
     let start = vec2<i32>(ray.start);
-    let m_start = medium[cell_base + u32(start.y * n + start.x)];
+    let m_start = medium[r.cell_base + u32(start.y * n + start.x)];
     if (m_start.x < 0.0) {
         // The source's first pixel is opaque: every photon is absorbed on entry.
         return;
@@ -269,7 +268,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     continue;
                 }
                 left -= 1u;
-                rng_start(seed, source, photon);
+                rng_start(seed, r.source, photon);
                 photon += 1u;
                 pos = ray.origin;
                 dir = ray.dir;
@@ -298,7 +297,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 if (outside_grid(cell)) {
                     break;
                 }
-                m = medium[cell_base + u32(cell.y * n + cell.x)];
+                m = medium[r.cell_base + u32(cell.y * n + cell.x)];
                 if (m.x < 0.0) {
                     break;
                 }
@@ -339,10 +338,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
 
         // 5. Tally the round's exits in their bins.
         if (pending > 0u) {
-            atomicAdd(&counts[tally_base + bin_of_exit(exit_s0, exit_d0)], 1u);
+            atomicAdd(&counts[r.tally_base + bin_of_exit(exit_s0, exit_d0)], 1u);
         }
         if (pending > 1u) {
-            atomicAdd(&counts[tally_base + bin_of_exit(exit_s1, exit_d1)], 1u);
+            atomicAdd(&counts[r.tally_base + bin_of_exit(exit_s1, exit_d1)], 1u);
         }
         pending = 0u;
         if (left == 0u && !alive) {
@@ -351,5 +350,5 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     end_of_run(finished);
-    add_scatter_events(item, vec2<u32>(events_lo, events_hi));
+    add_scatter_events(r.item, vec2<u32>(events_lo, events_hi));
 }
