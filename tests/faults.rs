@@ -629,19 +629,20 @@ fn a_worker_on_a_slow_link_loses_results_past_their_lease_until_its_leases_fit()
         .unwrap()
         .worker_id;
     let id = farm.submit();
-    let deadline = Instant::now() + JOB_LIMIT;
-    while !rpc
-        .workers()
-        .iter()
-        .any(|w| w.worker_id == far && w.tasks_leased > 0)
-    {
-        assert!(
-            Instant::now() < deadline,
-            "the far worker leased nothing\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(Duration::from_millis(1));
-    }
+    let far_worker = |what: &str, limit: Duration, reached: &dyn Fn(&pb::WorkerStatus) -> bool| {
+        let deadline = Instant::now() + limit;
+        while !rpc
+            .workers()
+            .iter()
+            .any(|w| w.worker_id == far && reached(w))
+        {
+            assert!(Instant::now() < deadline, "{what}\n{}", farm.logs());
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    far_worker("the far worker leased nothing", JOB_LIMIT, &|w| {
+        w.tasks_leased > 0
+    });
 
     // The far worker's lease expires while it uploads; its result is refused when it lands,
     // as stale, not from an unknown worker: it was still registered.
@@ -667,19 +668,11 @@ fn a_worker_on_a_slow_link_loses_results_past_their_lease_until_its_leases_fit()
 
     // Each expired lease doubles the time the far worker is allowed for its uploads, and a
     // result that lands measures it: its leases grow until a result fits, and is accepted.
-    let deadline = Instant::now() + Duration::from_secs(180);
-    while !rpc
-        .workers()
-        .iter()
-        .any(|w| w.worker_id == far && w.tasks_completed > 0)
-    {
-        assert!(
-            Instant::now() < deadline,
-            "the far worker's leases never grew to fit its uploads\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(STATUS_POLL);
-    }
+    far_worker(
+        "the far worker's leases never grew to fit its uploads",
+        Duration::from_secs(180),
+        &|w| w.tasks_completed > 0,
+    );
 
     farm.start_worker("near", &[]);
     farm.wait_finished(&id);
