@@ -158,6 +158,7 @@ impl Connector {
             interval,
             forgotten.clone(),
             url,
+            self.stop.clone(),
         ));
         Ok(Ok(Session {
             client,
@@ -169,13 +170,16 @@ impl Connector {
 }
 
 /// Sends a heartbeat every `interval` until the coordinator answers that it does not know
-/// `worker_id` (then sets `forgotten` and ends). Failures are logged and the beat goes on.
+/// `worker_id` (then sets `forgotten` and ends). Failures are logged and the beat goes on: the
+/// first as a warning, unless shutdown has been asked for (a coordinator that closes as this
+/// worker leaves, as `demo`'s does, is no news).
 async fn heartbeat(
     mut client: Client,
     worker_id: String,
     interval: Duration,
     forgotten: Arc<AtomicBool>,
     url: String,
+    stop: Stop,
 ) {
     let mut ticker = tokio::time::interval(interval);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -195,7 +199,7 @@ async fn heartbeat(
             Ok(response) => response.known,
             Err(status) if status.code() == Code::NotFound => false,
             Err(status) => {
-                if failing {
+                if failing || stop.requested() {
                     tracing::debug!("heartbeat to {url} failed: {}", describe(&status));
                 } else {
                     tracing::warn!("heartbeat to {url} failed: {}", describe(&status));
