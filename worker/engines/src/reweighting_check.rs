@@ -3,8 +3,9 @@
 //! where the unchanged map's do not.
 
 use scatterfarm_model::differential::{Change, DifferentialOutput};
+use scatterfarm_model::engine::{Engine, RenderBatch};
 use scatterfarm_model::material::builtin_material;
-use scatterfarm_model::{CountMatrix, Geometry, Material};
+use scatterfarm_model::{CountMatrix, Geometry, Material, PhotonRange, RenderItem};
 
 /// A 4×4 grid of 16 mm with 8 positions × 3 directions.
 pub(crate) fn geometry() -> Geometry {
@@ -23,6 +24,31 @@ pub(crate) fn table() -> Vec<Material> {
             Material::new(0.6, 0.01, 0.5).unwrap(),
         ])
         .collect()
+}
+
+/// A plain render by `engine` of `assignment` over [`geometry`] and [`table`]: photons
+/// [0, `photons`) of seed `seed`.
+pub(crate) fn plain(
+    engine: &dyn Engine,
+    assignment: &[u16],
+    seed: u64,
+    photons: u32,
+) -> CountMatrix {
+    let table = table();
+    let items = [RenderItem {
+        assignment: assignment.to_vec(),
+        seed,
+    }];
+    engine
+        .render(&RenderBatch {
+            geometry: geometry(),
+            table: &table,
+            items: &items,
+            photons: PhotonRange::first_n(photons),
+        })
+        .unwrap()
+        .remove(0)
+        .counts
 }
 
 /// A 2×2 block of `mild` in a `moderate` 4×4 grid, and one `back` pixel.

@@ -314,27 +314,12 @@ pub(super) fn render_differential(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reweighting_check::{apply, geometry, map, table};
+    use crate::reweighting_check::{self, apply, geometry, map, table};
     use crate::CpuEngine;
-    use scatterfarm_model::engine::RenderBatch;
     use scatterfarm_model::Engine;
 
     fn plain(assignment: &[u16], seed: u64, photons: u32) -> CountMatrix {
-        let items = [RenderItem {
-            assignment: assignment.to_vec(),
-            seed,
-        }];
-        let table = table();
-        CpuEngine::new()
-            .render(&RenderBatch {
-                geometry: geometry(),
-                table: &table,
-                items: &items,
-                photons: PhotonRange::first_n(photons),
-            })
-            .unwrap()
-            .remove(0)
-            .counts
+        reweighting_check::plain(&CpuEngine::new(), assignment, seed, photons)
     }
 
     fn differential(

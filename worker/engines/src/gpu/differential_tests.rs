@@ -5,7 +5,7 @@
 use super::engine::Tuning;
 use super::tests::engine_or_skip;
 use super::GpuEngine;
-use crate::reweighting_check::{apply, geometry, map, table};
+use crate::reweighting_check::{self, apply, geometry, map, table};
 use scatterfarm_model::differential::{Change, DifferentialOutput};
 use scatterfarm_model::engine::{CountMatrix, Engine, EngineError, RenderBatch};
 use scatterfarm_model::{PhotonRange, RenderItem};
@@ -18,17 +18,7 @@ fn item(assignment: &[u16], seed: u64) -> RenderItem {
 }
 
 fn plain(gpu: &GpuEngine, assignment: &[u16], seed: u64, photons: u32) -> CountMatrix {
-    let table = table();
-    let items = [item(assignment, seed)];
-    gpu.render(&RenderBatch {
-        geometry: geometry(),
-        table: &table,
-        items: &items,
-        photons: PhotonRange::first_n(photons),
-    })
-    .unwrap()
-    .remove(0)
-    .counts
+    reweighting_check::plain(gpu, assignment, seed, photons)
 }
 
 fn differential(
