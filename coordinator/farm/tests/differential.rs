@@ -6,11 +6,10 @@
 mod common;
 
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Abilities, Rendered, Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Rendered, Scheduler, Settings};
 use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::spec::JobSpec;
-use scatterfarm_model::Engine;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -32,18 +31,8 @@ fn differential_renders_go_whole_to_workers_that_render_them_and_their_scores_ar
     let engine = CpuEngine::new();
     // Same engine fingerprint, but it says it does not render differentially (as a worker whose
     // engine has no per-pixel tallies would).
-    let plain = s.register(
-        "gpu".into(),
-        engine.fingerprint(),
-        2e6,
-        Abilities::of_this_build(false),
-    );
-    let cpu = s.register(
-        "cpu".into(),
-        engine.fingerprint(),
-        2e6,
-        Abilities::of_this_build(true),
-    );
+    let plain = common::register(&mut s, "gpu", &engine, false);
+    let cpu = common::register(&mut s, "cpu", &engine, true);
     let (mut differential, mut waited, mut refused) = (0, 0, 0);
     for round in 0.. {
         assert!(round < 100_000, "the job did not end");

@@ -4,10 +4,9 @@
 
 mod common;
 
-use scatterfarm_coordinator::scheduler::{Abilities, Scheduler, Settings, TaskOut};
+use scatterfarm_coordinator::scheduler::{Scheduler, Settings, TaskOut};
 use scatterfarm_coordinator::store::MemoryStore;
 use scatterfarm_engines::cpu::CpuEngine;
-use scatterfarm_model::Engine;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -33,12 +32,7 @@ fn expired_leases_lengthen_the_next_and_prompt_results_shorten_them_again() {
     let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
-    let worker = s.register(
-        "slow-link".into(),
-        engine.fingerprint(),
-        2e6,
-        Abilities::of_this_build(true),
-    );
+    let worker = common::register(&mut s, "slow-link", &engine, true);
     let first = s.lease(&worker).unwrap().unwrap();
     assert_eq!(first.job, id);
     let shortest = lease_seconds(&first);

@@ -37,12 +37,7 @@ fn run(scoring: Scoring) -> (Scheduler, String) {
     let (spec, inputs) = common::job();
     let id = s.submit(spec, inputs).unwrap();
     let engine = CpuEngine::new();
-    let worker = s.register(
-        "w".into(),
-        engine.fingerprint(),
-        2e6,
-        Abilities::of_this_build(true),
-    );
+    let worker = common::register(&mut s, "w", &engine, true);
     let mut handed_out = 0;
     for round in 0.. {
         assert!(round < 100_000, "the job did not end");

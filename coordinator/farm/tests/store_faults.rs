@@ -6,11 +6,10 @@ mod common;
 
 use scatterfarm_coordinator::job::outputs::stored_outputs;
 use scatterfarm_coordinator::job::JobState;
-use scatterfarm_coordinator::scheduler::{Abilities, Scheduler, Settings};
+use scatterfarm_coordinator::scheduler::{Scheduler, Settings};
 use scatterfarm_coordinator::status::{all_statuses, state_name, status_of};
 use scatterfarm_coordinator::store::{MemoryStore, Store};
 use scatterfarm_engines::cpu::CpuEngine;
-use scatterfarm_model::Engine;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -27,12 +26,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
     let id = s.submit(spec, inputs).unwrap();
     let submitted = store.writes();
     let engine = CpuEngine::new();
-    let mut worker = s.register(
-        "w".into(),
-        engine.fingerprint(),
-        2e6,
-        Abilities::of_this_build(true),
-    );
+    let mut worker = common::register(&mut s, "w", &engine, true);
     let mut failing_rounds = 0;
     let mut paused_seen = false;
     for round in 0.. {
@@ -72,12 +66,7 @@ fn reconstruct(store: &Arc<MemoryStore>, fault: Option<(u64, usize)>) -> (Vec<u8
                         // Time passes: the pause is over. The worker, silent meanwhile, was
                         // forgotten and registers again.
                         s.sweep(Instant::now() + Duration::from_secs(60));
-                        worker = s.register(
-                            "w".into(),
-                            engine.fingerprint(),
-                            2e6,
-                            Abilities::of_this_build(true),
-                        );
+                        worker = common::register(&mut s, "w", &engine, true);
                     }
                     other => {
                         panic!("the job is {other} with nothing to lease ({reason}): {status:?}")

@@ -1,7 +1,7 @@
-//! What the in-process scheduler tests share: a small three-material job, and one CPU
-//! worker's render of a leased task.
+//! What the in-process scheduler tests share: a small three-material job, a CPU worker's
+//! registration, and its render of a leased task.
 
-use scatterfarm_coordinator::scheduler::{Rendered, TaskOut};
+use scatterfarm_coordinator::scheduler::{Abilities, Rendered, Scheduler, TaskOut};
 use scatterfarm_engines::cpu::CpuEngine;
 use scatterfarm_job::inputs::Inputs;
 use scatterfarm_job::spec::JobSpec;
@@ -32,6 +32,17 @@ pub fn job() -> (JobSpec, Inputs) {
         files: BTreeMap::from([("three.toml".to_string(), SCENE.as_bytes().to_vec())]),
     };
     (spec, inputs)
+}
+
+/// Registers a worker named `name` with `engine`'s fingerprint, 2e6 photons/s and this
+/// build's abilities (`differential`: whether it renders differentially); its id.
+pub fn register(s: &mut Scheduler, name: &str, engine: &CpuEngine, differential: bool) -> String {
+    s.register(
+        name.into(),
+        engine.fingerprint(),
+        2e6,
+        Abilities::of_this_build(differential),
+    )
 }
 
 /// `task` rendered by `engine`, as a worker returns it: a differential task in its chunks, its
