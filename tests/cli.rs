@@ -212,6 +212,31 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
         "{err}"
     );
     assert!(!dir.path().join("bench.json").exists());
+    // demo8's grid of 8 has 4 quad-tree levels.
+    let err = scatterfarm_in(
+        &[
+            "reconstruct",
+            "--scene",
+            "demo8",
+            "--coarse-levels",
+            "5",
+            "--engine",
+            "gpu",
+            "--adapter",
+            "no-such-adapter",
+            "--out",
+            "out",
+        ],
+        dir.path(),
+    )
+    .fails();
+    assert!(
+        err.contains("--coarse-levels")
+            && err.contains("1 ..= 4")
+            && !err.contains("no-such-adapter"),
+        "{err}"
+    );
+    assert!(!dir.path().join("out").exists(), "something was written");
 }
 
 #[test]

@@ -27,6 +27,7 @@ for f in files:
                       ("refine_simplify_z=1", "simplify")]:
         if key in settings:
             name += "-" + part
+    name += "".join("-coarse" + s.split("=", 1)[1] for s in settings if s.startswith("coarse_levels="))
     # Targets of other than the bench's 200 000 photons per source are named by their photons.
     target = (d.get("configuration") or {}).get("target_photons", 200000)
     if target != 200000:

@@ -13,6 +13,8 @@
 # likelihood-differential-direct8-simplify: direct8 with simplification rounds at 1 paired
 #   standard error where the stage would end.
 # likelihood-differential-direct8-blocks-simplify: direct8 with both.
+# likelihood-differential-direct8-coarseN: direct8 with the coarse stage cut to its first N
+#   quad-tree levels (coarse1: refinement from the one-material map).
 # likelihood-direct8: the likelihood search with direct screening (every change of a sweep
 #   rendered) at 12 800 photons per source, an eighth of likelihood-differential's sweeps, the
 #   same confirmations: what differential screening is measured against (issue 19).
@@ -48,6 +50,10 @@ search_flags() {
              --set refine_confirm_photons=204800 --set refine_sweeps=24
              --set refine_direct_photons=12800 --set refine_blocks=true
              --set refine_simplify_z=1) ;;
+    likelihood-differential-direct8-coarse[1-9])
+      flags=(--search likelihood --set refine_screen=differential --set refine_photons=102400
+             --set refine_confirm_photons=204800 --set refine_sweeps=24
+             --set refine_direct_photons=12800 --set "coarse_levels=${1##*-coarse}") ;;
     likelihood-direct8)
       flags=(--search likelihood --set refine_screen=direct --set refine_photons=12800
              --set refine_confirm_photons=204800 --set refine_sweeps=24) ;;

@@ -163,6 +163,8 @@ pub struct SearchOptions {
     pub seeding: Seeding,
     pub photons: Photons,
     pub early_step2: bool,
+    /// Quad-tree levels the coarse stage runs (`None`: all).
+    pub coarse_levels: Option<u32>,
     pub tie_z: f64,
     /// The tiebreak's metric and where it decides.
     pub tiebreak: Option<(Metric, Tiebreak)>,
@@ -285,6 +287,7 @@ impl JobSpec {
                 rescore,
             },
             early_step2: self.early_step2.unwrap_or(fast),
+            coarse_levels: self.coarse_levels,
             tie_z,
             tiebreak,
             refine,
@@ -355,6 +358,7 @@ mod tests {
                 seeding: Seeding::PerRequest,
                 photons: Photons::uniform(4096),
                 early_step2: false,
+                coarse_levels: None,
                 tie_z: 0.0,
                 tiebreak: None,
                 refine: None,

@@ -25,6 +25,9 @@ pub struct Configuration {
     pub search: SearchMode,
     pub common_random_numbers: bool,
     pub early_step2: bool,
+    /// Quad-tree levels the coarse stage ran (absent: all).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_levels: Option<u32>,
     pub tie_z: f64,
     /// The tiebreak's metric, its margin in standard errors, and the within-ε score from
     /// which it decides (absent: no tiebreak).

@@ -101,6 +101,9 @@ pub struct JobSpec {
     /// of observations a perfect map misses (1 − percentile/100): the tiebreak decides only
     /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
     pub tiebreak_saturation: Option<f64>,
+    /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
+    /// refinement then starts from the last one's map (1: from the one-material map).
+    pub coarse_levels: Option<u32>,
     /// After the quad-tree levels, refine single pixels and object positions by the likelihood
     /// (needs the deviance metric; likelihood: true).
     pub refine: Option<bool>,
@@ -177,6 +180,7 @@ impl Default for JobSpec {
             search: SearchMode::Fast,
             common_random_numbers: None,
             early_step2: None,
+            coarse_levels: None,
             level_photons: None,
             race_share: None,
             race_z: None,

@@ -85,6 +85,11 @@ pub struct SearchConfig {
     /// The pixel-level refinement stage after the last level (`crate::refine`), when set.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine: Option<RefineConfig>,
+    /// Quad-tree levels the coarse stage runs, from level 0 (`None`: all of them,
+    /// `log2 N + 1`). With fewer, the search's result (or the refinement's start) is the last
+    /// one's map, each of its blocks a square of the grid's pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_levels: Option<u32>,
 }
 
 /// Why a search cannot start or go on.
@@ -94,6 +99,8 @@ pub enum SearchError {
     Grid(u32),
     #[error("at least one permutation per level is needed")]
     Permutations,
+    #[error("the coarse stage runs 1 to {most} levels on a grid of {grid}, got {got}")]
+    CoarseLevels { got: u32, most: u32, grid: u32 },
     #[error("the dictionary is empty")]
     EmptyDictionary,
     #[error("dictionary index {0} is not in the material table")]
@@ -349,6 +356,14 @@ impl Search {
         if config.permutations == 0 {
             return Err(SearchError::Permutations);
         }
+        let most = config.grid.trailing_zeros() + 1;
+        if let Some(got) = config.coarse_levels.filter(|&n| n == 0 || n > most) {
+            return Err(SearchError::CoarseLevels {
+                got,
+                most,
+                grid: config.grid,
+            });
+        }
         if let Some(problem) = config.photons.problem() {
             return Err(SearchError::Photons(problem));
         }
@@ -505,8 +520,12 @@ impl Search {
         (self.config.grid as usize).pow(2)
     }
 
+    /// The last level the coarse stage runs ([`SearchConfig::coarse_levels`]).
     fn max_level(&self) -> u32 {
-        self.config.grid.trailing_zeros()
+        let finest = self.config.grid.trailing_zeros();
+        self.config
+            .coarse_levels
+            .map_or(finest, |n| n.saturating_sub(1).min(finest))
     }
 
     /// Permutations of `level` (level 0 has one step and no permutations).
@@ -1119,7 +1138,8 @@ impl Search {
             return;
         };
         if r.is_finished() {
-            let level = self.max_level();
+            // The refined map is of the grid's pixels, whatever level the coarse stage ended.
+            let level = self.config.grid.trailing_zeros();
             let (map, score) = r.current();
             let last = self.levels.last();
             self.refined = Some(LevelResult {

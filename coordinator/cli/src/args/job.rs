@@ -79,6 +79,10 @@ pub struct JobArgs {
     /// so they render in parallel (fast: true).
     #[arg(long, value_name = "BOOL")]
     pub early_step2: Option<bool>,
+    /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
+    /// refinement then starts from the last one's map (1: from the one-material map).
+    #[arg(long, value_name = "N")]
+    pub coarse_levels: Option<u32>,
     /// Photons per source of each level's renders, from level 0, comma-separated; the last
     /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
     #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
@@ -207,6 +211,7 @@ impl JobArgs {
             search: self.search,
             common_random_numbers: self.common_random_numbers,
             early_step2: self.early_step2,
+            coarse_levels: self.coarse_levels,
             level_photons: self.level_photons,
             race_share: self.race_share,
             race_z: self.race_z,

@@ -101,6 +101,14 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
     let (calibration_name, calibration_material) =
         calibration_material(spec, dictionary.is_some(), &table, truth.as_ref())?;
     let target = target(spec, inputs, truth.is_some(), target_file, search_photons)?;
+    if let Some(n) = options.coarse_levels {
+        let most = geometries.grid.trailing_zeros() + 1;
+        anyhow::ensure!(
+            (1..=most).contains(&n),
+            "coarse_levels (--coarse-levels) must lie in 1 ..= {most} on a grid of {}, got {n}",
+            geometries.grid
+        );
+    }
     let search = Search::new(
         SearchConfig {
             grid: geometries.grid,
@@ -112,6 +120,7 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
             early_step2: options.early_step2,
             tie_z: options.tie_z,
             tiebreak: options.tiebreak.map(|(_, t)| t),
+            coarse_levels: options.coarse_levels,
             refine: options.refine.clone().map(|mut r| {
                 // A differential render holds one f64 matrix of estimates per change.
                 let per_change = geometries.search.sources() * geometries.search.bins() * 8;
@@ -401,6 +410,7 @@ fn configuration(
         search: spec.search,
         common_random_numbers: options.seeding == scatterfarm_search::Seeding::PerLevel,
         early_step2: options.early_step2,
+        coarse_levels: options.coarse_levels,
         tie_z: options.tie_z,
         tiebreak: options.tiebreak.map(|(m, _)| m),
         tiebreak_z: options.tiebreak.map(|(_, t)| t.z),

@@ -24,6 +24,7 @@ fn search(grid: u32, permutations: u32, seed: u64, dictionary: Vec<u16>) -> Sear
         tie_z: 0.0,
         tiebreak: None,
         refine: None,
+        coarse_levels: None,
     };
     Search::new(config, table(&names)).unwrap()
 }
@@ -254,6 +255,7 @@ fn unknown_materials_grow_the_table_and_keep_inherited_candidates() {
         tie_z: 0.0,
         tiebreak: None,
         refine: None,
+        coarse_levels: None,
     };
     let mut s = Search::new(config, MaterialTable::default()).unwrap();
     assert_eq!(s.table().len(), 3);
@@ -290,6 +292,7 @@ fn bad_configurations_and_submissions_are_refused() {
                 tie_z: 0.0,
                 tiebreak: None,
                 refine: None,
+                coarse_levels: None,
             },
             t.clone(),
         )
@@ -339,6 +342,7 @@ fn per_level_seeding_shares_one_seed_per_level() {
             tie_z: 0.0,
             tiebreak: None,
             refine: None,
+            coarse_levels: None,
         },
         table(&["moderate", "opaque"]),
     )
@@ -373,6 +377,7 @@ fn configured(grid: u32, permutations: u32, d: u16, seeding: Seeding, photons: P
             tie_z: 0.0,
             tiebreak: None,
             refine: None,
+            coarse_levels: None,
         },
         table(&names),
     )
@@ -679,15 +684,38 @@ fn blocked(truth: &[u16], r: &RenderRequest) -> Score {
 
 #[test]
 fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
-    refinement_runs_and_resumes(crate::refine::Screen::Direct);
+    refinement_runs_and_resumes(crate::refine::Screen::Direct, None);
 }
 
 #[test]
 fn differential_refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
-    refinement_runs_and_resumes(crate::refine::Screen::Differential);
+    refinement_runs_and_resumes(crate::refine::Screen::Differential, None);
 }
 
-fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
+#[test]
+fn a_coarse_stage_cut_to_level_zero_refines_from_the_one_material_map() {
+    refinement_runs_and_resumes(crate::refine::Screen::Differential, Some(1));
+}
+
+#[test]
+fn a_coarse_stage_of_no_levels_or_more_than_the_grid_has_is_refused() {
+    for (n, refused) in [(0, true), (1, false), (3, false), (4, true)] {
+        let mut config = search(4, 1, 1, vec![0, 1]).config().clone();
+        config.coarse_levels = Some(n);
+        let got = Search::new(config, table(&["moderate", "opaque"]));
+        assert_eq!(
+            got.err(),
+            refused.then_some(SearchError::CoarseLevels {
+                got: n,
+                most: 3,
+                grid: 4
+            }),
+            "{n} levels"
+        );
+    }
+}
+
+fn refinement_runs_and_resumes(screen: crate::refine::Screen, coarse_levels: Option<u32>) {
     let names = ["moderate", "opaque", "mild"];
     let refine = RefineConfig {
         photons: 200,
@@ -717,6 +745,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
         tie_z: 0.0,
         tiebreak: None,
         refine: Some(refine),
+        coarse_levels,
     };
     let mut s = Search::new(config, table(&names)).unwrap();
     assert!(s.budgets().contains(&200) && s.budgets().contains(&400));
@@ -764,7 +793,14 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen) {
     );
     let result = s.result().unwrap();
     assert_eq!(result.assignment, truth);
+    assert_eq!(result.level, 2, "the refined map is of the grid's pixels");
     assert_eq!(restored_at.as_ref(), Some(&truth));
+    let levels = s.levels();
+    assert_eq!(levels.len(), coarse_levels.unwrap_or(3) as usize);
+    if coarse_levels == Some(1) {
+        let start = &levels[0].assignment;
+        assert!(start.iter().all(|&m| m == start[0]), "{start:?}");
+    }
     let history = s.refinement().unwrap().history();
     assert_eq!(history.last().map(|h| h.candidates), Some(0));
     let reweighted: u32 = history.iter().map(|h| h.reweighted).sum();

@@ -52,6 +52,7 @@ fn fresh() -> Search {
         tie_z: 0.0,
         tiebreak: None,
         refine: Some(refine),
+        coarse_levels: None,
     };
     Search::new(config, table).unwrap()
 }
