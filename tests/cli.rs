@@ -168,28 +168,28 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
     // The adapter does not exist: an engine opened before the options were checked would
     // report the adapter instead of the option.
     let dir = tempfile::tempdir().unwrap();
-    let err = scatterfarm_in(
-        &[
-            "reconstruct",
-            "--scene",
-            "demo8",
-            "--tie-z=-1",
-            "--engine",
-            "gpu",
-            "--adapter",
-            "no-such-adapter",
-            "--out",
-            "out",
-        ],
-        dir.path(),
-    )
-    .fails();
+    let no_adapter = ["--engine", "gpu", "--adapter", "no-such-adapter"];
+    let reconstruct = |option: &[&str]| {
+        let args = [
+            &["reconstruct", "--scene", "demo8"],
+            option,
+            &no_adapter,
+            &["--out", "out"],
+        ];
+        let err = scatterfarm_in(&args.concat(), dir.path()).fails();
+        assert!(!dir.path().join("out").exists(), "something was written");
+        assert!(!err.contains("no-such-adapter"), "{err}");
+        err
+    };
+    let err = reconstruct(&["--tie-z=-1"]);
+    assert!(err.contains("--tie-z"), "{err}");
+    // demo8's grid of 8 has 4 quad-tree levels.
+    let err = reconstruct(&["--coarse-levels", "5"]);
     assert!(
-        err.contains("--tie-z") && !err.contains("no-such-adapter"),
+        err.contains("--coarse-levels") && err.contains("1 ..= 4"),
         "{err}"
     );
-    assert!(!dir.path().join("out").exists(), "something was written");
-    let err = scatterfarm_in(
+    let bench = [
         &[
             "bench",
             "reconstruct",
@@ -197,46 +197,16 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
             "demo8",
             "--set",
             "race_share=2",
-            "--engine",
-            "gpu",
-            "--adapter",
-            "no-such-adapter",
-            "--out",
-            "bench.json",
-        ],
-        dir.path(),
-    )
-    .fails();
+        ][..],
+        &no_adapter,
+        &["--out", "bench.json"],
+    ];
+    let err = scatterfarm_in(&bench.concat(), dir.path()).fails();
     assert!(
         err.contains("--race-share") && err.contains("demo8") && !err.contains("no-such-adapter"),
         "{err}"
     );
     assert!(!dir.path().join("bench.json").exists());
-    // demo8's grid of 8 has 4 quad-tree levels.
-    let err = scatterfarm_in(
-        &[
-            "reconstruct",
-            "--scene",
-            "demo8",
-            "--coarse-levels",
-            "5",
-            "--engine",
-            "gpu",
-            "--adapter",
-            "no-such-adapter",
-            "--out",
-            "out",
-        ],
-        dir.path(),
-    )
-    .fails();
-    assert!(
-        err.contains("--coarse-levels")
-            && err.contains("1 ..= 4")
-            && !err.contains("no-such-adapter"),
-        "{err}"
-    );
-    assert!(!dir.path().join("out").exists(), "something was written");
 }
 
 #[test]
