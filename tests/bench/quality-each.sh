@@ -26,7 +26,7 @@ fi
 mkdir -p tests/bench/quality
 source tests/bench/searches.sh
 for search in $SEARCHES; do
-  search_flags "$search"
+  search_flags "$search" || exit 1
   for scene in ${SCENES//,/ }; do
     name="tests/bench/quality/$search-$scene-seeds${SEEDS//,/-}${TARGET_PHOTONS:+-target$TARGET_PHOTONS}${TAG:+-$TAG}"
     keep=()

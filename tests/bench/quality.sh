@@ -16,7 +16,7 @@ SEARCHES=${SEARCHES:-likelihood-differential paper}
 cargo build --release -q
 source tests/bench/searches.sh
 for search in $SEARCHES; do
-  search_flags "$search"
+  search_flags "$search" || exit 1
   target/release/scatterfarm bench reconstruct --engine cpu --scenes "$SCENES" --seeds "$SEEDS" \
     "${flags[@]}" --out "tests/bench/quality-$search.json"
 done
