@@ -189,6 +189,11 @@ fn a_bad_search_option_is_reported_before_any_engine_starts() {
         err.contains("--coarse-levels") && err.contains("1 ..= 4"),
         "{err}"
     );
+    let err = reconstruct(&["--coarse-levels", "sometimes"]);
+    assert!(
+        err.contains("--coarse-levels") && err.contains("\"auto\""),
+        "{err}"
+    );
     let bench = [
         &[
             "bench",

@@ -12,7 +12,8 @@
 #   blocks    2 × 2 blocks and neighbouring pairs set wholly to each material in the sweeps;
 #   simplify  simplification rounds at 1 paired standard error where the stage would end;
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
-#             the one-material map).
+#             the one-material map); coarseauto: cut after level 0 where its material
+#             scatters (`coarse_levels = "auto"`).
 #   e.g. likelihood-differential-direct8-blocks-coarse1.
 # likelihood-direct8: the likelihood search with direct screening (every change of a sweep
 #   rendered) at 12 800 photons per source, an eighth of likelihood-differential's sweeps, the
@@ -39,8 +40,8 @@ search_flags() {
           swaps) flags+=(--set refine_swaps=true) ;;
           blocks) flags+=(--set refine_blocks=true) ;;
           simplify) flags+=(--set refine_simplify_z=1) ;;
-          coarse[1-9]) flags+=(--set "coarse_levels=${part#coarse}") ;;
-          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, coarseN)" >&2
+          coarse[1-9] | coarseauto) flags+=(--set "coarse_levels=${part#coarse}") ;;
+          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, coarseN, coarseauto)" >&2
              return 1 ;;
         esac
       done ;;

@@ -5,7 +5,7 @@ use crate::spec::JobSpec;
 use anyhow::Result;
 use scatterfarm_search::refine::RefineConfig;
 use scatterfarm_search::similarity::Metric;
-use scatterfarm_search::{Photons, Race, Seeding, Tiebreak};
+use scatterfarm_search::{CoarseLevels, Photons, Race, Seeding, Tiebreak};
 use serde::{Deserialize, Serialize};
 
 /// Which search runs. The fast one is the default: on the quality bench it is at least as
@@ -164,7 +164,7 @@ pub struct SearchOptions {
     pub photons: Photons,
     pub early_step2: bool,
     /// Quad-tree levels the coarse stage runs (`None`: all).
-    pub coarse_levels: Option<u32>,
+    pub coarse_levels: Option<CoarseLevels>,
     pub tie_z: f64,
     /// The tiebreak's metric and where it decides.
     pub tiebreak: Option<(Metric, Tiebreak)>,

@@ -2,7 +2,7 @@
 
 use crate::options::SearchMode;
 use scatterfarm_search::similarity::Metric;
-use scatterfarm_search::{Bounds, Race};
+use scatterfarm_search::{Bounds, CoarseLevels, Race};
 use serde::{Deserialize, Serialize};
 
 /// The configuration, as recorded in `report.json`.
@@ -27,7 +27,7 @@ pub struct Configuration {
     pub early_step2: bool,
     /// Quad-tree levels the coarse stage ran (absent: all).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub coarse_levels: Option<u32>,
+    pub coarse_levels: Option<CoarseLevels>,
     pub tie_z: f64,
     /// The tiebreak's metric, its margin in standard errors, and the within-ε score from
     /// which it decides (absent: no tiebreak).

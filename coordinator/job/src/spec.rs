@@ -6,6 +6,7 @@
 use crate::options::{SearchMode, TiebreakMetric};
 use anyhow::{Context, Result};
 use scatterfarm_search::similarity::Metric;
+use scatterfarm_search::CoarseLevels;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -102,8 +103,10 @@ pub struct JobSpec {
     /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
     pub tiebreak_saturation: Option<f64>,
     /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
-    /// refinement then starts from the last one's map (1: from the one-material map).
-    pub coarse_levels: Option<u32>,
+    /// refinement then starts from the last one's map (1: from the one-material map; `auto`:
+    /// from level 0's where that material scatters and the sweeps screen differentially, else
+    /// after every level).
+    pub coarse_levels: Option<CoarseLevels>,
     /// After the quad-tree levels, refine single pixels and object positions by the likelihood
     /// (needs the deviance metric; likelihood: true).
     pub refine: Option<bool>,
@@ -307,6 +310,33 @@ mod tests {
         assert!(text.contains("version = 1"), "{text}");
         let back = JobSpec::from_toml(&text, Path::new("k.toml")).unwrap();
         assert_eq!(back, p);
+    }
+
+    #[test]
+    fn the_coarse_stage_is_a_level_count_or_auto_in_job_files() {
+        for (text, want) in [
+            ("2", CoarseLevels::Count(2)),
+            ("\"auto\"", CoarseLevels::Auto),
+        ] {
+            let p = JobSpec::from_toml(
+                &format!("scene = \"fig7a\"\ncoarse_levels = {text}\n"),
+                Path::new("j.toml"),
+            )
+            .unwrap();
+            assert_eq!(p.coarse_levels, Some(want));
+            let back = JobSpec::from_toml(&p.to_toml().unwrap(), Path::new("k.toml")).unwrap();
+            assert_eq!(back, p);
+        }
+        let err = JobSpec::from_toml(
+            "scene = \"fig7a\"\ncoarse_levels = \"most\"\n",
+            Path::new("j.toml"),
+        )
+        .unwrap_err();
+        let text = format!("{err:#}");
+        assert!(
+            text.contains("j.toml") && text.contains("coarse_levels") && text.contains("\"auto\""),
+            "{text}"
+        );
     }
 
     #[test]

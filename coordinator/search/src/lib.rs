@@ -28,6 +28,6 @@ pub mod steps;
 
 pub use driver::{Budget, Consumption, Scoring};
 pub use machine::{
-    Bounds, Candidates, ChangeScore, LevelResult, Photons, Progress, Race, RenderRequest, Score,
-    Search, SearchConfig, SearchError, Secondary, Seeding, Tiebreak,
+    Bounds, Candidates, ChangeScore, CoarseLevels, LevelResult, Photons, Progress, Race,
+    RenderRequest, Score, Search, SearchConfig, SearchError, Secondary, Seeding, Tiebreak,
 };

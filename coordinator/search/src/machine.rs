@@ -20,6 +20,7 @@
 //! Assignments are always at the search grid's resolution (`grid²` material indices, row-major,
 //! top row first); a region of level `ℓ` is a square block of `grid / 2^ℓ` pixels.
 
+mod coarse;
 mod photons;
 mod random;
 mod ties;
@@ -33,6 +34,7 @@ use scatterfarm_model::{Material, MaterialTable};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+pub use coarse::{CoarseLevels, ParseCoarseLevelsError};
 pub use photons::{Photons, Race};
 pub use random::Bounds;
 use ties::Rule;
@@ -87,9 +89,10 @@ pub struct SearchConfig {
     pub refine: Option<RefineConfig>,
     /// Quad-tree levels the coarse stage runs, from level 0 (`None`: all of them,
     /// `log2 N + 1`). With fewer, the search's result (or the refinement's start) is the last
-    /// one's map, each of its blocks a square of the grid's pixels.
+    /// one's map, each of its blocks a square of the grid's pixels; with
+    /// [`CoarseLevels::Auto`] the search decides after level 0.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub coarse_levels: Option<u32>,
+    pub coarse_levels: Option<CoarseLevels>,
 }
 
 /// Why a search cannot start or go on.
@@ -357,7 +360,10 @@ impl Search {
             return Err(SearchError::Permutations);
         }
         let most = config.grid.trailing_zeros() + 1;
-        if let Some(got) = config.coarse_levels.filter(|&n| n == 0 || n > most) {
+        if let Some(CoarseLevels::Count(got)) = config
+            .coarse_levels
+            .filter(|&c| matches!(c, CoarseLevels::Count(n) if n == 0 || n > most))
+        {
             return Err(SearchError::CoarseLevels {
                 got,
                 most,
@@ -481,7 +487,7 @@ impl Search {
 
     /// Every photons-per-source value the search renders with (each needs its own ε).
     pub fn budgets(&self) -> Vec<u32> {
-        let mut budgets = self.config.photons.budgets(self.max_level() + 1);
+        let mut budgets = self.config.photons.budgets(self.planned_max_level() + 1);
         if let Some(r) = &self.config.refine {
             budgets.extend(Refinement::photon_levels(r));
             budgets.sort_unstable();
@@ -520,12 +526,43 @@ impl Search {
         (self.config.grid as usize).pow(2)
     }
 
-    /// The last level the coarse stage runs ([`SearchConfig::coarse_levels`]).
+    /// The last level the coarse stage runs ([`SearchConfig::coarse_levels`]); under
+    /// [`CoarseLevels::Auto`], decided once level 0 has ended (the finest until then).
     fn max_level(&self) -> u32 {
         let finest = self.config.grid.trailing_zeros();
-        self.config
-            .coarse_levels
-            .map_or(finest, |n| n.saturating_sub(1).min(finest))
+        match self.config.coarse_levels {
+            None => finest,
+            Some(CoarseLevels::Count(n)) => n.saturating_sub(1).min(finest),
+            Some(CoarseLevels::Auto) => match self.levels.first() {
+                Some(zero) if self.refines_from_level_zero(&zero.assignment) => 0,
+                _ => finest,
+            },
+        }
+    }
+
+    /// The last level the coarse stage may run: [`Search::max_level`] where it is fixed, the
+    /// finest under [`CoarseLevels::Auto`] (what is planned before level 0 ends, such as ε's
+    /// photon budgets, covers every level it might run).
+    fn planned_max_level(&self) -> u32 {
+        match self.config.coarse_levels {
+            Some(CoarseLevels::Auto) => self.config.grid.trailing_zeros(),
+            _ => self.max_level(),
+        }
+    }
+
+    /// [`coarse::refines_from_level_zero`] for this search's refinement and candidates.
+    fn refines_from_level_zero(&self, level_zero: &[u16]) -> bool {
+        match &self.config.candidates {
+            Candidates::Dictionary(d) => coarse::refines_from_level_zero(
+                self.config.refine.as_ref(),
+                level_zero,
+                &self.table.physics(),
+                d,
+            ),
+            // Unknown-materials mode: the levels draw the materials the refinement then
+            // tries (level 0's map holds one), so every level runs.
+            Candidates::Random { .. } => false,
+        }
     }
 
     /// Permutations of `level` (level 0 has one step and no permutations).
@@ -577,7 +614,11 @@ impl Search {
         if let Some(problem) = self.config.refine.as_ref().and_then(|r| r.problem()) {
             return bad(format!("refinement: {problem}"));
         }
-        let (levels, pixels, materials) = (self.max_level() + 1, self.pixels(), self.table.len());
+        let (levels, pixels, materials) = (
+            self.planned_max_level() + 1,
+            self.pixels(),
+            self.table.len(),
+        );
         let map_ok = |a: &[u16]| a.len() == pixels && a.iter().all(|&m| usize::from(m) < materials);
         if self.levels.len() > levels as usize {
             return bad(format!("{} levels done of {levels}", self.levels.len()));

@@ -80,9 +80,11 @@ pub struct JobArgs {
     #[arg(long, value_name = "BOOL")]
     pub early_step2: Option<bool>,
     /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
-    /// refinement then starts from the last one's map (1: from the one-material map).
-    #[arg(long, value_name = "N")]
-    pub coarse_levels: Option<u32>,
+    /// refinement then starts from the last one's map (1: from the one-material map; auto:
+    /// from level 0's where that material scatters and the sweeps screen differentially, else
+    /// after every level).
+    #[arg(long, value_name = "N|auto")]
+    pub coarse_levels: Option<scatterfarm_search::CoarseLevels>,
     /// Photons per source of each level's renders, from level 0, comma-separated; the last
     /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
     #[arg(long, value_delimiter = ',', value_name = "N,N,...")]

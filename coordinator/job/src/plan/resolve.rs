@@ -14,7 +14,7 @@ use scatterfarm_model::material::builtin_material;
 use scatterfarm_model::{Geometry, Material, MaterialTable, Scene};
 use scatterfarm_search::driver::Budget;
 use scatterfarm_search::similarity::Target;
-use scatterfarm_search::{Bounds, Candidates, Search, SearchConfig};
+use scatterfarm_search::{Bounds, Candidates, CoarseLevels, Search, SearchConfig};
 
 fn parse_range(text: &str, key: &str) -> Result<(f64, f64)> {
     let (lo, hi) = text
@@ -101,11 +101,11 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
     let (calibration_name, calibration_material) =
         calibration_material(spec, dictionary.is_some(), &table, truth.as_ref())?;
     let target = target(spec, inputs, truth.is_some(), target_file, search_photons)?;
-    if let Some(n) = options.coarse_levels {
+    if let Some(CoarseLevels::Count(n)) = options.coarse_levels {
         let most = geometries.grid.trailing_zeros() + 1;
         anyhow::ensure!(
             (1..=most).contains(&n),
-            "coarse_levels (--coarse-levels) must lie in 1 ..= {most} on a grid of {}, got {n}",
+            "coarse_levels (--coarse-levels) must be auto or lie in 1 ..= {most} on a grid of {}, got {n}",
             geometries.grid
         );
     }

@@ -684,24 +684,71 @@ fn blocked(truth: &[u16], r: &RenderRequest) -> Score {
 
 #[test]
 fn refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
-    refinement_runs_and_resumes(crate::refine::Screen::Direct, None);
+    refinement_runs_and_resumes(crate::refine::Screen::Direct, None, 3);
 }
 
 #[test]
 fn differential_refinement_runs_after_the_levels_and_resumes_from_a_checkpoint() {
-    refinement_runs_and_resumes(crate::refine::Screen::Differential, None);
+    refinement_runs_and_resumes(crate::refine::Screen::Differential, None, 3);
 }
 
 #[test]
 fn a_coarse_stage_cut_to_level_zero_refines_from_the_one_material_map() {
-    refinement_runs_and_resumes(crate::refine::Screen::Differential, Some(1));
+    refinement_runs_and_resumes(
+        crate::refine::Screen::Differential,
+        Some(CoarseLevels::Count(1)),
+        1,
+    );
+}
+
+#[test]
+fn an_automatic_coarse_stage_refines_from_a_scattering_one_material_map_when_sweeps_reweight() {
+    // Level 0 picks `moderate`, out of which every candidate reweights.
+    refinement_runs_and_resumes(
+        crate::refine::Screen::Differential,
+        Some(CoarseLevels::Auto),
+        1,
+    );
+}
+
+#[test]
+fn an_automatic_coarse_stage_runs_every_level_when_sweeps_render_each_change() {
+    refinement_runs_and_resumes(crate::refine::Screen::Direct, Some(CoarseLevels::Auto), 3);
+}
+
+#[test]
+fn an_automatic_coarse_stage_runs_every_level_from_a_non_scattering_one_material_map() {
+    // A transmissive background with a moderate and an opaque pixel: level 0 picks
+    // `transmissive`, out of which a change to `moderate` cannot be reweighted.
+    let mut config = search(4, 1, 3, vec![0, 1, 2]).config().clone();
+    config.seeding = Seeding::PerLevel;
+    config.coarse_levels = Some(CoarseLevels::Auto);
+    config.refine = Some(RefineConfig {
+        max_sweeps: 2,
+        ..small_refinement(crate::refine::Screen::Differential)
+    });
+    let mut s = Search::new(config, table(&["transmissive", "moderate", "opaque"])).unwrap();
+    let mut truth = vec![0u16; 16];
+    truth[5] = 1;
+    truth[10] = 2;
+    while !s.is_finished() {
+        let scores: Vec<Score> = s.pending().iter().map(|r| blocked(&truth, r)).collect();
+        s.submit_scores(&scores).unwrap();
+    }
+    let levels = s.levels();
+    assert_eq!(levels.len(), 3, "every level ran");
+    assert!(levels[0].assignment.iter().all(|&m| m == 0));
+    assert!(
+        s.refinement().is_some(),
+        "the refinement ran after the levels"
+    );
 }
 
 #[test]
 fn a_coarse_stage_of_no_levels_or_more_than_the_grid_has_is_refused() {
     for (n, refused) in [(0, true), (1, false), (3, false), (4, true)] {
         let mut config = search(4, 1, 1, vec![0, 1]).config().clone();
-        config.coarse_levels = Some(n);
+        config.coarse_levels = Some(CoarseLevels::Count(n));
         let got = Search::new(config, table(&["moderate", "opaque"]));
         assert_eq!(
             got.err(),
@@ -715,9 +762,9 @@ fn a_coarse_stage_of_no_levels_or_more_than_the_grid_has_is_refused() {
     }
 }
 
-fn refinement_runs_and_resumes(screen: crate::refine::Screen, coarse_levels: Option<u32>) {
-    let names = ["moderate", "opaque", "mild"];
-    let refine = RefineConfig {
+/// A refinement of small budgets that screens with `screen`.
+fn small_refinement(screen: crate::refine::Screen) -> RefineConfig {
+    RefineConfig {
         photons: 200,
         confirm_photons: 400,
         z: 3.0,
@@ -733,7 +780,17 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen, coarse_levels: Opt
         swap_pixels: false,
         blocks: false,
         simplify_z: None,
-    };
+    }
+}
+
+/// Runs a refinement after `coarse_levels` to the truth, checkpointing it once during
+/// refinement, and checks that `levels` coarse levels ran.
+fn refinement_runs_and_resumes(
+    screen: crate::refine::Screen,
+    coarse_levels: Option<CoarseLevels>,
+    levels: usize,
+) {
+    let names = ["moderate", "opaque", "mild"];
     let config = SearchConfig {
         grid: 4,
         permutations: 1,
@@ -744,7 +801,7 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen, coarse_levels: Opt
         early_step2: true,
         tie_z: 0.0,
         tiebreak: None,
-        refine: Some(refine),
+        refine: Some(small_refinement(screen)),
         coarse_levels,
     };
     let mut s = Search::new(config, table(&names)).unwrap();
@@ -795,10 +852,10 @@ fn refinement_runs_and_resumes(screen: crate::refine::Screen, coarse_levels: Opt
     assert_eq!(result.assignment, truth);
     assert_eq!(result.level, 2, "the refined map is of the grid's pixels");
     assert_eq!(restored_at.as_ref(), Some(&truth));
-    let levels = s.levels();
-    assert_eq!(levels.len(), coarse_levels.unwrap_or(3) as usize);
-    if coarse_levels == Some(1) {
-        let start = &levels[0].assignment;
+    let ran = s.levels();
+    assert_eq!(ran.len(), levels);
+    if levels == 1 {
+        let start = &ran[0].assignment;
         assert!(start.iter().all(|&m| m == start[0]), "{start:?}");
     }
     let history = s.refinement().unwrap().history();
