@@ -151,6 +151,13 @@ pub mod likelihood {
     /// How sweeps score their changes.
     pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
         scatterfarm_search::refine::Screen::Direct;
+    /// The coarse stage stops after level 0 where its one-material map scatters and the sweeps
+    /// screen differentially (`docs/model.md`, "Where it starts"), else runs every level: on
+    /// the bench's moderate backgrounds the refinement from that map ends 2–3 points higher
+    /// (fig7a, fig7f over 3 seeds; fig7e 95.3 %), where the full coarse stage leaves local
+    /// optima (`README.md`, "Refinement from the one-material map").
+    pub const COARSE_LEVELS: scatterfarm_search::CoarseLevels =
+        scatterfarm_search::CoarseLevels::Auto;
     /// The most changes one differential render estimates, before the plan fits it to the
     /// geometry (`plan::resolve`: at most 256 MiB of estimates per render).
     pub const CHANGES_PER_RENDER: u32 = 1024;
@@ -287,7 +294,9 @@ impl JobSpec {
                 rescore,
             },
             early_step2: self.early_step2.unwrap_or(fast),
-            coarse_levels: self.coarse_levels,
+            coarse_levels: self
+                .coarse_levels
+                .or(like.then_some(likelihood::COARSE_LEVELS)),
             tie_z,
             tiebreak,
             refine,
@@ -374,6 +383,13 @@ mod tests {
         assert!(o.photons.race.is_none() && o.tiebreak.is_none());
         let r = o.refine.expect("the likelihood search refines");
         assert_eq!((r.photons, r.confirm_photons), (4096, 8192));
+        assert_eq!(o.coarse_levels, Some(CoarseLevels::Auto));
+        let all = JobSpec {
+            coarse_levels: Some(CoarseLevels::Count(5)),
+            ..like.clone()
+        };
+        let o = all.search_options(4096).unwrap();
+        assert_eq!(o.coarse_levels, Some(CoarseLevels::Count(5)));
         let off = JobSpec {
             refine: Some(false),
             ..like.clone()

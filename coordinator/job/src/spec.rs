@@ -102,10 +102,10 @@ pub struct JobSpec {
     /// of observations a perfect map misses (1 − percentile/100): the tiebreak decides only
     /// there (fast: 3, a score of 0.997 at the 99.9th percentile).
     pub tiebreak_saturation: Option<f64>,
-    /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
-    /// refinement then starts from the last one's map (1: from the one-material map; `auto`:
-    /// from level 0's where that material scatters and the sweeps screen differentially, else
-    /// after every level).
+    /// Quad-tree levels the coarse stage runs, from level 0 (unless set all of them, that is
+    /// log2 grid + 1; likelihood: auto); the refinement then starts from the last one's map (1: from the
+    /// one-material map; `auto`: from level 0's where that material scatters and the sweeps
+    /// screen differentially, else after every level).
     pub coarse_levels: Option<CoarseLevels>,
     /// After the quad-tree levels, refine single pixels and object positions by the likelihood
     /// (needs the deviance metric; likelihood: true).

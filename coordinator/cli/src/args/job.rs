@@ -79,10 +79,10 @@ pub struct JobArgs {
     /// so they render in parallel (fast: true).
     #[arg(long, value_name = "BOOL")]
     pub early_step2: Option<bool>,
-    /// Quad-tree levels the coarse stage runs, from level 0 (default: all, log2 grid + 1); the
-    /// refinement then starts from the last one's map (1: from the one-material map; auto:
-    /// from level 0's where that material scatters and the sweeps screen differentially, else
-    /// after every level).
+    /// Quad-tree levels the coarse stage runs, from level 0 (unless set all of them, that is
+    /// log2 grid + 1; likelihood: auto); the refinement then starts from the last one's map (1: from the
+    /// one-material map; auto: from level 0's where that material scatters and the sweeps
+    /// screen differentially, else after every level).
     #[arg(long, value_name = "N|auto")]
     pub coarse_levels: Option<scatterfarm_search::CoarseLevels>,
     /// Photons per source of each level's renders, from level 0, comma-separated; the last
