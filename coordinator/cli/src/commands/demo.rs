@@ -49,7 +49,9 @@ pub struct DemoArgs {
 /// - any other scene: the quality bench's likelihood search with differential screening
 ///   (`tests/bench/searches.sh`, `likelihood-differential-direct8`) at the bench's geometry,
 ///   32 positions × 5 directions and 200 000 target photons per source. On fig7c (16×16, a
-///   transmissive background) it finds every pixel (`tests/bench/quality`).
+///   transmissive background) it finds every pixel (`tests/bench/quality`). Its coarse stage is
+///   the likelihood search's `auto`: every level on fig7c, whose one-material map does not
+///   scatter; level 0 alone on a scattering background such as fig7a's.
 pub fn demo_params(scene: &str) -> JobSpec {
     if scene == "demo8" {
         return JobSpec {
