@@ -341,6 +341,7 @@ fn a_captured_target_is_reconstructed_from_its_files() {
 #[test]
 fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
     let dir = tempfile::tempdir().unwrap();
+    // Direct screening (a render of every change): the differential default is the next test.
     let args = [
         "--search",
         "likelihood",
@@ -350,6 +351,8 @@ fn the_likelihood_search_finds_the_scene_in_process_and_on_the_farm_alike() {
         "1",
         "--refine-sweeps",
         "3",
+        "--refine-screen",
+        "direct",
     ];
     let report = reconstruct(dir.path(), THREE, "like", &args);
     assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
@@ -411,6 +414,13 @@ fn differential_refinement_finds_the_scene_in_process_and_on_the_farm_alike() {
         "3",
         "--refine-screen",
         "differential",
+        // The sweeps at the nominal 4 × 512 photons, small enough for a test.
+        "--refine-photons",
+        "2048",
+        "--refine-confirm-photons",
+        "4096",
+        "--refine-direct-photons",
+        "2048",
     ];
     let report = reconstruct(dir.path(), THREE, "diff", &args);
     assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");

@@ -76,7 +76,14 @@ impl Search {
     pub fn keys(self) -> &'static [(&'static str, &'static str)] {
         match self {
             Search::Paper | Search::Fast => &[],
-            Search::Differential => &[("refine_screen", "differential"), ("refine_sweeps", "3")],
+            // The sweeps at the nominal 4 × 256 photons, small enough for a test.
+            Search::Differential => &[
+                ("refine_screen", "differential"),
+                ("refine_sweeps", "3"),
+                ("refine_photons", "1024"),
+                ("refine_confirm_photons", "2048"),
+                ("refine_direct_photons", "1024"),
+            ],
         }
     }
 }

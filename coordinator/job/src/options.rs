@@ -3,7 +3,7 @@
 
 use crate::spec::JobSpec;
 use anyhow::Result;
-use scatterfarm_search::refine::RefineConfig;
+use scatterfarm_search::refine::{RefineConfig, Screen};
 use scatterfarm_search::similarity::Metric;
 use scatterfarm_search::{CoarseLevels, Photons, Race, Seeding, Tiebreak};
 use serde::{Deserialize, Serialize};
@@ -134,23 +134,32 @@ pub mod likelihood {
     pub const LEVEL_SHARES: [f64; 1] = [0.25];
     /// Re-scoring photons, as a share of the nominal budget.
     pub const RESCORE_SHARE: f64 = 1.0;
-    /// A refinement sweep's photons per source, as a share of the nominal budget.
-    pub const REFINE_SHARE: f64 = 1.0;
+    /// A differential sweep's photons per source, as a share of the nominal budget: 102 400 at
+    /// the bench's 8 × 512, the photons at which one render of the current map resolves its
+    /// single-pixel changes on the Fig. 7 scenes (`README.md`, "The likelihood search").
+    pub const REFINE_SHARE: f64 = 25.0;
+    /// A sweep's direct renders (every change of a direct sweep; the changes a differential
+    /// one cannot reweight, and the render of the current map they pair with) take this
+    /// fraction of a differential sweep's photons: their signal is usually large (a pixel that
+    /// starts or stops scattering), and there is one render per change.
+    pub const DIRECT_FRACTION: u32 = 8;
     /// The confirmation's photons per source, as a share of the nominal budget.
-    pub const CONFIRM_SHARE: f64 = 2.0;
+    pub const CONFIRM_SHARE: f64 = 50.0;
     /// A change must beat the current map by more than this many paired standard errors.
     pub const REFINE_Z: f64 = 3.0;
-    /// The most refinement sweeps.
-    pub const REFINE_SWEEPS: u32 = 8;
+    /// The most refinement sweeps: the refinement from the one-material map builds the
+    /// objects in 10–20 sweeps on the Fig. 7 scenes.
+    pub const REFINE_SWEEPS: u32 = 24;
     /// Doublings of the refinement's photons where it would otherwise end.
     pub const REFINE_ESCALATIONS: u32 = 2;
     /// A sweep of a map swept before renders directly only the changes whose paired z there
     /// was above this: on transmissive backgrounds, where every change to a scattering pixel
     /// is a render of its own, escalations otherwise re-render hundreds of clear losers.
     pub const REFINE_RETEST_Z: f64 = -1.0;
-    /// How sweeps score their changes.
+    /// How sweeps score their changes: one differential render of the current map estimates
+    /// them all (8–11× fewer photons than a render of each on the bench's scenes).
     pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
-        scatterfarm_search::refine::Screen::Direct;
+        scatterfarm_search::refine::Screen::Differential;
     /// The coarse stage stops after level 0 where its one-material map scatters and the sweeps
     /// screen differentially (`docs/model.md`, "Where it starts"), else runs every level: on
     /// the bench's moderate backgrounds the refinement from that map ends 2–3 points higher
@@ -248,17 +257,29 @@ impl JobSpec {
                     "refine (--refine) compares maps by the likelihood: it needs --metric deviance, and the metric is {}",
                     metric.name()
                 );
+                let screen = self.refine_screen.unwrap_or(likelihood::REFINE_SCREEN);
+                let differential_photons = share(likelihood::REFINE_SHARE);
+                let direct_default = |sweep: u32| (sweep / likelihood::DIRECT_FRACTION).max(1);
+                let photons = self.refine_photons.unwrap_or(match screen {
+                    Screen::Differential => differential_photons,
+                    Screen::Direct => direct_default(differential_photons),
+                });
+                let direct_photons = match screen {
+                    Screen::Differential => Some(
+                        self.refine_direct_photons
+                            .unwrap_or(direct_default(photons)),
+                    ),
+                    Screen::Direct => self.refine_direct_photons,
+                };
                 let config = RefineConfig {
-                    photons: self
-                        .refine_photons
-                        .unwrap_or_else(|| share(likelihood::REFINE_SHARE)),
+                    photons,
                     confirm_photons: self
                         .refine_confirm_photons
                         .unwrap_or_else(|| share(likelihood::CONFIRM_SHARE)),
                     z: self.refine_z.unwrap_or(likelihood::REFINE_Z),
                     max_sweeps: self.refine_sweeps.unwrap_or(likelihood::REFINE_SWEEPS),
                     move_objects: self.refine_moves.unwrap_or(true),
-                    screen: self.refine_screen.unwrap_or(likelihood::REFINE_SCREEN),
+                    screen,
                     changes_per_render: likelihood::CHANGES_PER_RENDER,
                     escalations: self
                         .refine_escalations
@@ -266,7 +287,7 @@ impl JobSpec {
                     recolour_regions: self.refine_recolour.unwrap_or(true),
                     // Set from the geometry when the plan resolves.
                     pixel_mm: 1.0,
-                    direct_photons: self.refine_direct_photons,
+                    direct_photons,
                     retest_z: Some(self.refine_retest_z.unwrap_or(likelihood::REFINE_RETEST_Z)),
                     swap_pixels: self.refine_swaps.unwrap_or(false),
                     blocks: self.refine_blocks.unwrap_or(false),
@@ -382,8 +403,34 @@ mod tests {
         assert_eq!(o.seeding, Seeding::PerLevel);
         assert!(o.photons.race.is_none() && o.tiebreak.is_none());
         let r = o.refine.expect("the likelihood search refines");
-        assert_eq!((r.photons, r.confirm_photons), (4096, 8192));
+        // At the bench's nominal 8 × 512: its `likelihood-differential-direct8` recipe.
+        assert_eq!(r.screen, Screen::Differential);
+        assert_eq!(
+            (r.photons, r.confirm_photons, r.direct_photons, r.max_sweeps),
+            (102_400, 204_800, Some(12_800), 24)
+        );
         assert_eq!(o.coarse_levels, Some(CoarseLevels::Auto));
+        // A direct sweep renders every change at the direct renders' photons; a sweep's
+        // photons set explicitly carry its direct renders with them.
+        let direct = JobSpec {
+            refine_screen: Some(Screen::Direct),
+            ..like.clone()
+        };
+        let r = direct.search_options(4096).unwrap().refine.unwrap();
+        assert_eq!((r.photons, r.direct_photons), (12_800, None));
+        let small = JobSpec {
+            refine_photons: Some(800),
+            ..like.clone()
+        };
+        let r = small.search_options(4096).unwrap().refine.unwrap();
+        assert_eq!((r.photons, r.direct_photons), (800, Some(100)));
+        let pinned = JobSpec {
+            refine_photons: Some(800),
+            refine_direct_photons: Some(800),
+            ..like.clone()
+        };
+        let r = pinned.search_options(4096).unwrap().refine.unwrap();
+        assert_eq!(r.direct_photons, Some(800));
         let all = JobSpec {
             coarse_levels: Some(CoarseLevels::Count(5)),
             ..like.clone()

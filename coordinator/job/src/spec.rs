@@ -110,26 +110,27 @@ pub struct JobSpec {
     /// After the quad-tree levels, refine single pixels and object positions by the likelihood
     /// (needs the deviance metric; likelihood: true).
     pub refine: Option<bool>,
-    /// Photons per source of a refinement sweep's renders (likelihood: iterations × photons
-    /// per iteration).
+    /// Photons per source of a refinement sweep's renders (likelihood: 25 × iterations ×
+    /// photons per iteration for a differential sweep, 102 400 at 8 × 512; an eighth of that
+    /// for a direct one).
     pub refine_photons: Option<u32>,
     /// Photons per source of a refinement's confirmation renders, on a fresh seed
-    /// (likelihood: twice iterations × photons per iteration).
+    /// (likelihood: 50 × iterations × photons per iteration).
     pub refine_confirm_photons: Option<u32>,
     /// Photons per source of a differential sweep's direct renders (the changes it cannot
-    /// reweight) and of the render of the current map they are paired with (default: the
-    /// sweep's photons).
+    /// reweight) and of the render of the current map they are paired with (default: an
+    /// eighth of the sweep's photons).
     pub refine_direct_photons: Option<u32>,
     /// A refinement change must beat the current map by more than this many paired standard
     /// errors (likelihood: 3).
     pub refine_z: Option<f64>,
-    /// The most refinement sweeps (likelihood: 8).
+    /// The most refinement sweeps (likelihood: 24).
     pub refine_sweeps: Option<u32>,
     /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
     pub refine_moves: Option<bool>,
     /// How a refinement sweep scores its changes: `direct` (a render of each) or
-    /// `differential` (one differential render of the current map; CPU engine, in process and
-    /// on the farm).
+    /// `differential` (one differential render of the current map; either engine, in process
+    /// and on the farm; likelihood: differential).
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
     /// How many times refinement may double its photons where it would otherwise end
     /// (likelihood: 2).

@@ -127,33 +127,34 @@ pub struct JobArgs {
     /// likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub refine: Option<bool>,
-    /// Photons per source of a refinement sweep's renders (likelihood: iterations × photons
-    /// per iteration).
+    /// Photons per source of a refinement sweep's renders (likelihood: 25 × iterations ×
+    /// photons per iteration for a differential sweep, 102 400 at 8 × 512; an eighth of that
+    /// for a direct one).
     #[arg(long, value_name = "N")]
     pub refine_photons: Option<u32>,
-    /// Photons per source of a refinement's confirmation renders (likelihood: twice
+    /// Photons per source of a refinement's confirmation renders (likelihood: 50 ×
     /// iterations × photons per iteration).
     #[arg(long, value_name = "N")]
     pub refine_confirm_photons: Option<u32>,
     /// Photons per source of a differential sweep's direct renders (the changes it cannot
     /// reweight, e.g. a scattering pixel in a transmissive background) and of the render of
-    /// the current map they are paired with (default: the sweep's photons).
+    /// the current map they are paired with (default: an eighth of the sweep's photons).
     #[arg(long, value_name = "N")]
     pub refine_direct_photons: Option<u32>,
     /// A refinement change must beat the current map by more than this many paired standard
     /// errors (likelihood: 3).
     #[arg(long, value_name = "Z")]
     pub refine_z: Option<f64>,
-    /// The most refinement sweeps (likelihood: 8).
+    /// The most refinement sweeps (likelihood: 24).
     #[arg(long, value_name = "N")]
     pub refine_sweeps: Option<u32>,
     /// Whether refinement sweeps also move whole objects by one pixel (likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub refine_moves: Option<bool>,
     /// How a refinement sweep scores its changes: `direct` renders each changed map;
-    /// `differential` estimates them all from one render of the current map (CPU engine; on
-    /// the farm, CPU workers render and score them), rendering directly only the changes it
-    /// cannot reweight.
+    /// `differential` estimates them all from one render of the current map (either engine;
+    /// on the farm the workers render and score them), rendering directly only the changes it
+    /// cannot reweight (likelihood: differential).
     #[arg(long, value_name = "HOW", value_parser = choice::<scatterfarm_search::refine::Screen>())]
     pub refine_screen: Option<scatterfarm_search::refine::Screen>,
     /// How many times refinement may double its sweep and confirmation photons where it would

@@ -13,7 +13,6 @@ use scatterfarm_job::options::SearchMode;
 use scatterfarm_job::report::Report;
 use scatterfarm_job::spec::JobSpec;
 use scatterfarm_proto::channel::Endpoint;
-use scatterfarm_search::refine::Screen;
 use scatterfarm_worker::{self as agent, AgentConfig};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -46,8 +45,8 @@ pub struct DemoArgs {
 /// - `demo8`: the 8×8 built-in scene with the fast search, at a budget two CPU cores finish in
 ///   under a minute and at which it finds the truth (seed 1: every pixel; 8 iterations and 2
 ///   permutations, the paper search's demo budget, leave it at 93.8 %).
-/// - any other scene: the quality bench's likelihood search with differential screening
-///   (`tests/bench/searches.sh`, `likelihood-differential-direct8`) at the bench's geometry,
+/// - any other scene: the likelihood search with its defaults, which are the quality bench's
+///   `likelihood-differential-direct8` (`tests/bench/searches.sh`), at the bench's geometry,
 ///   32 positions × 5 directions and 200 000 target photons per source. On fig7c (16×16, a
 ///   transmissive background) it finds every pixel (`tests/bench/quality`). Its coarse stage is
 ///   the likelihood search's `auto`: every level on fig7c, whose one-material map does not
@@ -71,11 +70,6 @@ pub fn demo_params(scene: &str) -> JobSpec {
         directions: Some(5),
         target_photons: Some(200_000),
         search: SearchMode::Likelihood,
-        refine_screen: Some(Screen::Differential),
-        refine_photons: Some(102_400),
-        refine_confirm_photons: Some(204_800),
-        refine_direct_photons: Some(12_800),
-        refine_sweeps: Some(24),
         name: Some(format!("demo {scene}")),
         ..JobSpec::default()
     }
@@ -244,6 +238,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
 mod tests {
     use super::*;
     use scatterfarm_job::plan::Plan;
+    use scatterfarm_search::refine::Screen;
 
     /// The default demo is a 16×16 scene at the bench's geometry, refined by differential
     /// renders; `demo8` keeps its small fast search. Both resolve into plans.
@@ -261,6 +256,10 @@ mod tests {
             .clone()
             .expect("a refinement stage");
         assert_eq!(refine.screen, Screen::Differential);
+        assert_eq!(
+            (refine.photons, refine.confirm_photons, refine.max_sweeps),
+            (102_400, 204_800, 24)
+        );
         assert_eq!(refine.direct_photons, Some(12_800));
         let demo8 = demo_params("demo8");
         let inputs = Inputs::gather(&demo8, Path::new(".")).unwrap();
