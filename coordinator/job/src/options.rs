@@ -139,9 +139,9 @@ pub mod likelihood {
     /// single-pixel changes on the Fig. 7 scenes (`README.md`, "The likelihood search").
     pub const REFINE_SHARE: f64 = 25.0;
     /// A sweep's direct renders (every change of a direct sweep; the changes a differential
-    /// one cannot reweight, and the render of the current map they pair with) take this
-    /// fraction of a differential sweep's photons: their signal is usually large (a pixel that
-    /// starts or stops scattering), and there is one render per change.
+    /// one cannot reweight, and the render of the current map they pair with) take one
+    /// `DIRECT_FRACTION`th of a differential sweep's photons: their signal is usually large (a
+    /// pixel that starts or stops scattering), and there is one render per change.
     pub const DIRECT_FRACTION: u32 = 8;
     /// The confirmation's photons per source, as a share of the nominal budget.
     pub const CONFIRM_SHARE: f64 = 50.0;
@@ -157,7 +157,7 @@ pub mod likelihood {
     /// is a render of its own, escalations otherwise re-render hundreds of clear losers.
     pub const REFINE_RETEST_Z: f64 = -1.0;
     /// How sweeps score their changes: one differential render of the current map estimates
-    /// them all (8–11× fewer photons than a render of each on the bench's scenes).
+    /// them all (7–11× fewer photons than a render of each on the bench's scenes).
     pub const REFINE_SCREEN: scatterfarm_search::refine::Screen =
         scatterfarm_search::refine::Screen::Differential;
     /// The coarse stage stops after level 0 where its one-material map scatters and the sweeps
