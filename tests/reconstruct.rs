@@ -94,7 +94,7 @@ fn the_fast_search_finds_them_with_a_fraction_of_the_photons() {
 
 /// The built-in 16×16 phantom (a mild object over half of a moderate field) at the quality
 /// bench's geometry: within-ε is saturated by the one-material map, so without its tiebreak the
-/// fast search keeps level 0; with it (the default) the stabilized L2 finds part of the object
+/// fast search keeps level 0; with it (the fast search's default) the stabilized L2 finds part of the object
 /// (on seed 3; on seed 1 no change is confirmed by the re-scoring, and level 0 stays).
 #[test]
 fn the_tiebreak_lets_the_fast_search_leave_a_saturated_one_material_map() {

@@ -94,7 +94,7 @@ pub fn job_toml() -> String {
     job_toml_of(Search::Paper)
 }
 
-/// The job file of `search`. The faster search (the default) has every option on by default
+/// The job file of `search`. The faster search has every option on by default
 /// (racing, re-scoring, early step 2, common random numbers, the tiebreak).
 pub fn job_toml_of(search: Search) -> String {
     let mut text = "scene = \"three.toml\"\n".to_string();

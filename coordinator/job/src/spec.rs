@@ -65,9 +65,10 @@ pub struct JobSpec {
     pub directions: Option<u32>,
     /// The job seed: every random stream derives from it.
     pub seed: u64,
-    /// The search: the faster one, or the paper's exactly. The options below switch one
-    /// improvement on or off in either mode; `fast` changes their defaults (given after each
-    /// as "fast: …").
+    /// The search: `likelihood` (the default: the quad-tree levels, then pixel-level
+    /// refinement by the likelihood), `fast` (the quad-tree levels only) or `paper` (the
+    /// paper's algorithm exactly). The options below switch one improvement on or off in any
+    /// mode; `fast` and `likelihood` change their defaults.
     pub search: SearchMode,
     /// Common random numbers: every render of a level on one seed (fast: true).
     pub common_random_numbers: Option<bool>,
@@ -181,7 +182,7 @@ impl Default for JobSpec {
             positions: None,
             directions: None,
             seed: DEFAULT_SEED,
-            search: SearchMode::Fast,
+            search: SearchMode::default(),
             common_random_numbers: None,
             early_step2: None,
             coarse_levels: None,
@@ -307,7 +308,7 @@ mod tests {
             "defaults are left out: {text}"
         );
         // But always the version and the search.
-        assert!(text.contains("search = \"fast\""), "{text}");
+        assert!(text.contains("search = \"likelihood\""), "{text}");
         assert!(text.contains("version = 1"), "{text}");
         let back = JobSpec::from_toml(&text, Path::new("k.toml")).unwrap();
         assert_eq!(back, p);

@@ -51,7 +51,7 @@ pub struct JobArgs {
     /// ε is this percentile of the calibration differences.
     #[arg(long, default_value_t = DEFAULT_PERCENTILE)]
     pub percentile: f64,
-    /// The similarity metric.
+    /// The similarity metric (paper, fast: within-epsilon; likelihood: deviance).
     #[arg(long, value_name = "METRIC", value_parser = choice::<Metric>())]
     pub metric: Option<Metric>,
     /// Search at this grid (a power of two, at most the scene's); default: the scene's grid,
@@ -67,16 +67,19 @@ pub struct JobArgs {
     /// The job seed: every random stream derives from it.
     #[arg(long, default_value_t = DEFAULT_SEED)]
     pub seed: u64,
-    /// The search: the faster one, or the paper's exactly. The options below switch one
-    /// improvement on or off in either mode; `fast` changes their defaults (given after each
-    /// as "fast: …").
-    #[arg(long, default_value_t = SearchMode::Fast, value_parser = choice::<SearchMode>())]
+    /// The search: `likelihood` (the quad-tree levels by the likelihood on common random
+    /// numbers, then pixel-level refinement: the most accurate on the quality bench), `fast`
+    /// (the quad-tree levels only, with racing and re-scoring) or `paper` (the paper's
+    /// algorithm exactly). The options below switch one improvement on or off in any mode;
+    /// `fast` and `likelihood` change their defaults (given after each as "fast: …",
+    /// "likelihood: …").
+    #[arg(long, default_value_t = SearchMode::Likelihood, value_parser = choice::<SearchMode>())]
     pub search: SearchMode,
-    /// Common random numbers: every render of a level on one seed (fast: true).
+    /// Common random numbers: every render of a level on one seed (fast, likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub common_random_numbers: Option<bool>,
     /// Request all M⁰-variants of a permutation (its step-2 renders) at once when it starts,
-    /// so they render in parallel (fast: true).
+    /// so they render in parallel (fast, likelihood: true).
     #[arg(long, value_name = "BOOL")]
     pub early_step2: Option<bool>,
     /// Quad-tree levels the coarse stage runs, from level 0 (unless set all of them, that is
@@ -86,11 +89,12 @@ pub struct JobArgs {
     #[arg(long, value_name = "N|auto")]
     pub coarse_levels: Option<scatterfarm_search::CoarseLevels>,
     /// Photons per source of each level's renders, from level 0, comma-separated; the last
-    /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it).
+    /// holds for finer levels (paper: iterations × photons per iteration; fast: a tenth of it;
+    /// likelihood: a quarter).
     #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
     pub level_photons: Option<Vec<u32>>,
     /// Racing: render every candidate first with this share of the level's photons and
-    /// spend the rest on the contenders; 1 turns it off (paper: 1; fast: 0.25).
+    /// spend the rest on the contenders; 1 turns it off (paper, likelihood: 1; fast: 0.25).
     #[arg(long, value_name = "SHARE")]
     pub race_share: Option<f64>,
     /// Racing drops a candidate whose first-stage score is this many standard errors behind
@@ -99,12 +103,12 @@ pub struct JobArgs {
     pub race_z: Option<f64>,
     /// Re-score a level's distinct finalists (each permutation's result, and the level's
     /// starting map) on one fresh seed with this many photons per source and keep the best;
-    /// 0 turns it off (paper: 0; fast: iterations × photons per iteration).
+    /// 0 turns it off (paper: 0; fast, likelihood: iterations × photons per iteration).
     #[arg(long, value_name = "N")]
     pub rescore_photons: Option<u32>,
     /// Scores closer than this many standard errors of their difference tie: a tie inside a
     /// step goes to the earlier candidate, between the steps to step 2, as in the paper's
-    /// exact ties (paper: 0; fast: 1).
+    /// exact ties (paper, likelihood: 0; fast: 1).
     #[arg(long, value_name = "Z")]
     pub tie_z: Option<f64>,
     /// Where within-ε is saturated (see --tiebreak-saturation), this metric decides between

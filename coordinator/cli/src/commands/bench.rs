@@ -82,10 +82,11 @@ pub struct ReconstructBenchArgs {
     /// every search sees the same targets.
     #[arg(long, default_value_t = 200_000)]
     pub target_photons: u32,
-    /// The search: the fast one (the reconstructions' default), or the paper's.
+    /// The search: the likelihood search (the reconstructions' default), the fast one, or the
+    /// paper's.
     #[arg(
         long,
-        default_value_t = scatterfarm_job::options::SearchMode::Fast,
+        default_value_t = scatterfarm_job::options::SearchMode::Likelihood,
         value_parser = crate::args::choice::choice::<scatterfarm_job::options::SearchMode>()
     )]
     pub search: scatterfarm_job::options::SearchMode,

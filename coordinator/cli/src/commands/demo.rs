@@ -57,6 +57,7 @@ pub fn demo_params(scene: &str) -> JobSpec {
             scene: Some("demo8".into()),
             permutations: 3,
             iterations: 32,
+            search: SearchMode::Fast,
             name: Some("demo".into()),
             ..JobSpec::default()
         };
