@@ -11,6 +11,8 @@
 #   swaps     neighbouring-pixel swaps in the sweeps;
 #   blocks    2 × 2 blocks and neighbouring pairs set wholly to each material in the sweeps;
 #   simplify  simplification rounds at 1 paired standard error where the stage would end;
+#   grow      growth rounds where the stage would end: small objects grown by their neighbours
+#             and recoloured, each rendered on its own (refine_grow);
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
 #             the one-material map); coarseauto: cut after level 0 where its material
 #             scatters (`coarse_levels = "auto"`).
@@ -40,8 +42,9 @@ search_flags() {
           swaps) flags+=(--set refine_swaps=true) ;;
           blocks) flags+=(--set refine_blocks=true) ;;
           simplify) flags+=(--set refine_simplify_z=1) ;;
+          grow) flags+=(--set refine_grow=true) ;;
           coarse[1-9] | coarseauto) flags+=(--set "coarse_levels=${part#coarse}") ;;
-          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, coarseN, coarseauto)" >&2
+          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, grow, coarseN, coarseauto)" >&2
              return 1 ;;
         esac
       done ;;

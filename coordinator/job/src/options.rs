@@ -298,6 +298,7 @@ impl JobSpec {
                     swap_pixels: self.refine_swaps.unwrap_or(false),
                     blocks: self.refine_blocks.unwrap_or(false),
                     simplify_z: self.refine_simplify_z,
+                    grow_objects: self.refine_grow.unwrap_or(false),
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");
@@ -454,6 +455,19 @@ mod tests {
         };
         let err = wrong.search_options(4096).unwrap_err().to_string();
         assert!(err.contains("--metric deviance"), "{err}");
+        // Growth rounds are off unless asked for.
+        let grow = |refine_grow| {
+            JobSpec {
+                refine_grow,
+                ..Default::default()
+            }
+            .search_options(4096)
+            .unwrap()
+            .refine
+            .unwrap()
+            .grow_objects
+        };
+        assert!(!grow(None) && grow(Some(true)));
         // The default search refines: the refusal says how to use another metric.
         assert!(err.contains("--search fast"), "{err}");
         let asked = JobSpec {

@@ -150,6 +150,10 @@ pub struct JobSpec {
     /// pixel and region set to the background unless that loses by more than this many paired
     /// standard errors (likelihood: off).
     pub refine_simplify_z: Option<f64>,
+    /// Where refinement would end, a growth round first: each object of at most four pixels
+    /// grown by its neighbours and set wholly to each other material, each rendered on its
+    /// own (likelihood: false).
+    pub refine_grow: Option<bool>,
     /// A refinement sweep of a map swept before renders directly only the changes whose
     /// paired z there was above this (likelihood: -1; `-inf`: every change).
     pub refine_retest_z: Option<f64>,
@@ -207,6 +211,7 @@ impl Default for JobSpec {
             refine_swaps: None,
             refine_blocks: None,
             refine_simplify_z: None,
+            refine_grow: None,
             refine_retest_z: None,
             name: None,
             engine_fingerprint: None,

@@ -105,10 +105,33 @@ pub struct RefineConfig {
     /// `None`: no simplification.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simplify_z: Option<f64>,
+    /// Where the stage would end (before it escalates), a **growth** round first: each small
+    /// object (a connected region of at most [`GROWTH_MAX_PIXELS`] pixels, not of the
+    /// background) grown by its 8-connected neighbours and set wholly to each candidate
+    /// material other than the background, each grown map rendered on its own at a
+    /// [`GROWTH_FRACTION`]th of the sweep's photons. A small object of a strong material can
+    /// stand in for a larger one of a weaker material (one opaque pixel for a 3 × 2 block of
+    /// `uniform` on fig7f): no single pixel then improves the map, and the recolour of the
+    /// grown object is too noisy for a differential render to estimate. A round that changes
+    /// the map lets the sweeps go on from it (they trim what it grew too far); one that
+    /// changes nothing lets the stage go on as without it. [`MAX_GROWTHS`] rounds at most, and
+    /// none twice on one map.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub grow_objects: bool,
 }
 
 /// The most simplification rounds one refinement runs ([`RefineConfig::simplify_z`]).
 pub const MAX_SIMPLIFICATIONS: u32 = 3;
+
+/// The most growth rounds one refinement runs ([`RefineConfig::grow_objects`]).
+pub const MAX_GROWTHS: u32 = 4;
+
+/// A growth round grows the objects of at most this many pixels.
+pub const GROWTH_MAX_PIXELS: usize = 4;
+
+/// A growth round's renders take this fraction of the sweep's photons (escalated): each is a
+/// render of its own, and the changes it looks for move the counts as a whole object does.
+pub const GROWTH_FRACTION: u32 = 4;
 
 fn is_zero(n: &u32) -> bool {
     *n == 0
@@ -278,6 +301,9 @@ pub struct SweepRecord {
     /// A simplification round ([`RefineConfig::simplify_z`]).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub simplification: bool,
+    /// A growth round ([`RefineConfig::grow_objects`]).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub growth: bool,
 }
 
 /// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
@@ -352,6 +378,15 @@ pub struct Refinement {
     /// again).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     simplified: Option<Vec<u16>>,
+    /// Whether the pending sweep or confirmation is a growth round.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    growing: bool,
+    /// Growth rounds so far.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    growths: u32,
+    /// The map of the last growth round that changed nothing (none is run on it again).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    grown: Option<Vec<u16>>,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -412,6 +447,9 @@ impl Refinement {
             simplifying: false,
             simplifications: 0,
             simplified: None,
+            growing: false,
+            growths: 0,
+            grown: None,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -482,6 +520,27 @@ impl Refinement {
         }
         let seed = seeds::derive(self.job_seed, Stream::RefineSweep(self.sweep));
         let photons = self.escalated(self.config.photons);
+        if self.growing {
+            // Every grown map rendered on its own, paired with a render of `M` on its seed.
+            let photons = (photons / GROWTH_FRACTION).max(1);
+            let maps: Vec<Vec<u16>> = changes.iter().map(|c| self.apply(c)).collect();
+            self.pending = std::iter::once(self.current.clone())
+                .chain(maps)
+                .map(|assignment| RefineRequest {
+                    assignment,
+                    seed,
+                    photons,
+                    changes: Vec::new(),
+                })
+                .collect();
+            self.waiting = Some(Waiting::Sweep {
+                changes,
+                reweighted: Vec::new(),
+                filled: false,
+                separate: false,
+            });
+            return;
+        }
         let request = |assignment: Vec<u16>, changes: Vec<Change>| RefineRequest {
             assignment,
             seed,
@@ -688,9 +747,20 @@ impl Refinement {
             && self.simplifications < MAX_SIMPLIFICATIONS
             && self.sweep + 1 < self.config.max_sweeps
             && self.simplified.as_ref() != Some(&self.current);
+        let may_grow = self.config.grow_objects
+            && self.growths < MAX_GROWTHS
+            && self.sweep + 1 < self.config.max_sweeps
+            && self.grown.as_ref() != Some(&self.current)
+            && !self.growths_of_current().is_empty();
         if may_simplify && self.escalation >= self.config.escalations {
             self.simplifications += 1;
             self.simplifying = true;
+            self.stalls = 0;
+            self.sweep += 1;
+            self.emit_sweep();
+        } else if may_grow {
+            self.growths += 1;
+            self.growing = true;
             self.stalls = 0;
             self.sweep += 1;
             self.emit_sweep();
@@ -708,6 +778,7 @@ impl Refinement {
         self.waiting = None;
         self.pending.clear();
         self.simplifying = false;
+        self.growing = false;
     }
 
     /// The z a change must beat the current map by to be a candidate, and a confirmation's
@@ -723,7 +794,7 @@ impl Refinement {
     /// map was swept before and `change` did not come within [`RefineConfig::retest_z`] of
     /// beating it there.
     fn retested(&self, change: &Change) -> bool {
-        if self.simplifying {
+        if self.simplifying || self.growing {
             return true;
         }
         match &self.reach {
@@ -802,6 +873,9 @@ impl Refinement {
         if self.simplifying {
             return self.simplifications();
         }
+        if self.growing {
+            return self.growths_of_current();
+        }
         let mut out: Vec<Change> = Vec::new();
         for (p, &m) in self.current.iter().enumerate() {
             for &d in &self.materials {
@@ -856,6 +930,48 @@ impl Refinement {
                 out.push(Change {
                     pixels: pixels.iter().map(|&p| (p as u32, background)).collect(),
                 });
+            }
+        }
+        out
+    }
+
+    /// A growth round's changes: each object of at most [`GROWTH_MAX_PIXELS`] pixels not of
+    /// the background, with its 8-connected neighbours, set wholly to each candidate material
+    /// other than the background (where two pixels or more change); objects in the order of
+    /// their first pixel.
+    fn growths_of_current(&self) -> Vec<Change> {
+        let n = self.grid as i64;
+        let background = self.background();
+        let mut out = Vec::new();
+        let mut seen = BTreeSet::new();
+        for (m, pixels) in self.regions() {
+            if m == background || pixels.len() > GROWTH_MAX_PIXELS {
+                continue;
+            }
+            let mut grown: BTreeSet<usize> = BTreeSet::new();
+            for &p in &pixels {
+                let (y, x) = (p as i64 / n, p as i64 % n);
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        let (yy, xx) = (y + dy, x + dx);
+                        if (0..n).contains(&yy) && (0..n).contains(&xx) {
+                            grown.insert((yy * n + xx) as usize);
+                        }
+                    }
+                }
+            }
+            for &d in &self.materials {
+                if d == background {
+                    continue;
+                }
+                let pixels: Vec<(u32, u16)> = grown
+                    .iter()
+                    .filter(|&&p| self.current[p] != d)
+                    .map(|&p| (p as u32, d))
+                    .collect();
+                if pixels.len() >= 2 && seen.insert(pixels.clone()) {
+                    out.push(Change { pixels });
+                }
             }
         }
         out
@@ -1203,7 +1319,7 @@ impl Refinement {
             })
             .collect();
         let threshold = self.threshold();
-        if let (Some(retest_z), false) = (self.config.retest_z, self.simplifying) {
+        if let (Some(retest_z), false) = (self.config.retest_z, self.simplifying || self.growing) {
             // A change without a z (no blocks to pair) stays in reach.
             let changes = changes
                 .iter()
@@ -1244,10 +1360,15 @@ impl Refinement {
                 reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
                 map: self.current.clone(),
                 simplification: self.simplifying,
+                growth: self.growing,
             });
             if self.simplifying {
                 self.simplifying = false;
                 self.simplified = Some(self.current.clone());
+            }
+            if self.growing {
+                self.growing = false;
+                self.grown = Some(self.current.clone());
             }
             self.escalate_or_end();
             return;
@@ -1292,7 +1413,9 @@ impl Refinement {
             Screen::Direct => None,
             Screen::Differential => self.filled_base(),
         };
+        // A growth's recolours are too noisy to estimate: they are confirmed by renders.
         let differential = self.config.screen == Screen::Differential
+            && !self.growing
             && match &base {
                 Some(b) => prefixes
                     .iter()
@@ -1342,6 +1465,7 @@ impl Refinement {
             reweighted: reweighted.iter().map(|k| k.len() as u32).sum(),
             map: self.current.clone(),
             simplification: self.simplifying,
+            growth: self.growing,
         });
         self.waiting = Some(Waiting::Confirm {
             options,
@@ -1419,13 +1543,21 @@ impl Refinement {
                 }
             }
         }
-        if self.simplifying {
+        if self.simplifying || self.growing {
             // A round that changed the map: sweeps go on from it; one that did not: as where
             // the stage would have ended without it (escalate, or end).
-            self.simplifying = false;
-            if self.stalls > 0 {
+            let unchanged = self.stalls > 0;
+            if unchanged {
                 self.stalls = 0;
-                self.simplified = Some(self.current.clone());
+                if self.simplifying {
+                    self.simplified = Some(self.current.clone());
+                } else {
+                    self.grown = Some(self.current.clone());
+                }
+            }
+            self.simplifying = false;
+            self.growing = false;
+            if unchanged {
                 self.escalate_or_end();
                 return;
             }
@@ -1464,6 +1596,7 @@ mod tests {
             swap_pixels: false,
             blocks: false,
             simplify_z: None,
+            grow_objects: false,
         }
     }
 
@@ -1568,6 +1701,73 @@ mod tests {
             assert!(steps < 50, "the refinement ends");
         }
         r
+    }
+
+    #[test]
+    fn growth_rounds_replace_a_strong_pixel_standing_in_for_a_weak_block() {
+        // A 4 × 4 map: the truth is a 2 × 2 block B (pixels 5, 6, 9, 10) of the weak material
+        // 1 in background 0. One pixel of the strong material 2 (worth four weak ones) at 5
+        // fits the counts almost as well, and no single pixel, move or recolour improves it.
+        let block = [5usize, 6, 9, 10];
+        let score = |a: &[u16], seed: u64, _photons: u32| -> Scored {
+            let weight = |m: u16| [0.0, 1.0, 4.0][usize::from(m)];
+            let signal: f64 = block.iter().map(|&p| weight(a[p])).sum();
+            let outside = (0..16).filter(|p| !block.contains(p) && a[*p] != 0).count() as f64;
+            let strong = a.iter().filter(|&&m| m == 2).count() as f64;
+            let badness = 2.0 * (signal - 4.0).powi(2) + 0.2 * outside + 1.5 * strong;
+            let objects = a.iter().filter(|&&m| m != 0).count() as f64;
+            let blocks: Vec<f64> = (0..8)
+                .map(|b| {
+                    let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
+                    -badness / 8.0 + sign * 0.001 * objects + ((seed % 97) as f64) * 0.01
+                })
+                .collect();
+            (blocks.iter().sum(), blocks)
+        };
+        let mut start = vec![0u16; 16];
+        start[5] = 2;
+        let run = |grow_objects| {
+            let config = RefineConfig {
+                grow_objects,
+                max_sweeps: 12,
+                ..config()
+            };
+            run_scored(
+                config,
+                start.clone(),
+                vec![0, 1, 2],
+                Vec::new(),
+                Vec::new(),
+                &score,
+            )
+        };
+        // Without growth rounds the start is where the stage ends.
+        let kept = run(false);
+        assert_eq!(kept.current().0, &start[..]);
+        assert!(kept.history().iter().all(|h| !h.growth));
+        // With them, the strong pixel's neighbourhood becomes the weak material, and the
+        // sweeps after it trim what grew outside the block: the truth.
+        let grown = run(true);
+        let mut truth = vec![0u16; 16];
+        for p in block {
+            truth[p] = 1;
+        }
+        assert_eq!(grown.current().0, &truth[..], "{:?}", grown.history());
+        let rounds: Vec<&SweepRecord> = grown.history().iter().filter(|h| h.growth).collect();
+        assert!(rounds.first().is_some_and(|h| h.changed == 9), "{rounds:?}");
+        // A round that changes nothing is not run again on its map.
+        assert!(rounds.len() <= MAX_GROWTHS as usize);
+        assert!(grown.is_finished());
+        // The rounds' state survives a checkpoint (the scores only to JSON's float precision).
+        let json = serde_json::to_string(&grown).unwrap();
+        let back: Refinement = serde_json::from_str(&json).unwrap();
+        assert_eq!((back.growths, &back.grown), (grown.growths, &grown.grown));
+        assert_eq!(back.history().len(), grown.history().len());
+        assert!(back
+            .history()
+            .iter()
+            .zip(grown.history())
+            .all(|(a, b)| a.growth == b.growth));
     }
 
     #[test]

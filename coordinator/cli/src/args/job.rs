@@ -187,6 +187,14 @@ pub struct JobArgs {
     /// no photon reaches) becomes the background; sweeps then go on (likelihood: off).
     #[arg(long, value_name = "Z")]
     pub refine_simplify_z: Option<f64>,
+    /// Where refinement would end (before it escalates), a growth round first: each object
+    /// of at most four pixels, not of the background, grown by its 8-connected neighbours and
+    /// set wholly to each other candidate material, each grown map rendered on its own at a
+    /// quarter of the sweep's photons: a small object of a strong material standing in for a
+    /// larger one of a weaker material is then one change; sweeps go on from what it
+    /// changes (likelihood: false).
+    #[arg(long, value_name = "BOOL")]
+    pub refine_grow: Option<bool>,
     /// A refinement sweep of a map swept before (after a stall, or escalated) renders
     /// directly only the changes whose paired z on its last sweep was above this; changes a
     /// differential render estimates are always tried (likelihood: -1; -inf: every change).
@@ -240,6 +248,7 @@ impl JobArgs {
             refine_swaps: self.refine_swaps,
             refine_blocks: self.refine_blocks,
             refine_simplify_z: self.refine_simplify_z,
+            refine_grow: self.refine_grow,
             refine_retest_z: self.refine_retest_z,
             ..JobSpec::default()
         }

@@ -36,6 +36,7 @@ fn fresh() -> Search {
         swap_pixels: false,
         blocks: false,
         simplify_z: None,
+        grow_objects: false,
     };
     let config = SearchConfig {
         grid: GRID,
