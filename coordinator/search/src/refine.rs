@@ -1748,7 +1748,7 @@ mod tests {
         // With them, the strong pixel's neighbourhood becomes the weak material, and the
         // sweeps after it trim what grew outside the block: the truth.
         let grown = run(true);
-        let mut truth = vec![0u16; 16];
+        let mut truth = [0u16; 16];
         for p in block {
             truth[p] = 1;
         }
