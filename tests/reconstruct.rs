@@ -14,8 +14,12 @@ fn reconstruct(dir: &Path, scene: &str, out: &str, extra: &[&str]) -> serde_json
         .arg(&scene_path)
         .args(["--engine", "cpu", "--quiet", "--out"])
         .arg(dir.join(out))
-        .args(extra);
-    output(cmd).ok();
+        .args(extra)
+        .env_remove("RUST_LOG");
+    let ran = output(cmd);
+    ran.ok();
+    // `--quiet`: no progress bar and no progress logs, only the closing summary.
+    assert!(!ran.stderr.contains("INFO"), "{}", ran.stderr);
     serde_json::from_slice(&std::fs::read(dir.join(out).join("report.json")).unwrap()).unwrap()
 }
 
@@ -424,6 +428,13 @@ fn differential_refinement_finds_the_scene_in_process_and_on_the_farm_alike() {
     ];
     let report = reconstruct(dir.path(), THREE, "diff", &args);
     assert_eq!(report["pixel_accuracy"], 1.0, "{report:#}");
+    // The report says how the map was refined.
+    let refine = &report["configuration"]["refine"];
+    assert_eq!(refine["screen"], "differential", "{refine:#}");
+    assert_eq!(refine["photons"], 2048, "{refine:#}");
+    assert_eq!(refine["confirm_photons"], 4096, "{refine:#}");
+    assert_eq!(refine["direct_photons"], 2048, "{refine:#}");
+    assert_eq!(refine["max_sweeps"], 3, "{refine:#}");
     let sweeps = report["refinement"]
         .as_array()
         .expect("the sweeps are reported");

@@ -72,14 +72,28 @@ enum Command {
     Workers(jobs::ListArgs),
 }
 
+impl Command {
+    /// The log level where RUST_LOG names none: warnings only for a quiet reconstruction.
+    fn default_log_level(&self) -> &'static str {
+        match self {
+            Command::Reconstruct(a) if a.quiet => "warn",
+            _ => "info",
+        }
+    }
+}
+
 fn main() -> Result<()> {
+    let cli = Cli::parse();
+    let level = cli.command.default_log_level();
     tracing_subscriber::fmt()
         .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level)),
         )
         .with_writer(std::io::stderr)
+        // Colours only on a terminal: logs sent to a file or a journal stay plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
-    match Cli::parse().command {
+    match cli.command {
         Command::Render(a) => render::run(a),
         Command::Show(a) => show::run(a),
         Command::Scenes(a) => scenes::run(a),

@@ -1,6 +1,7 @@
 //! `report.json` of a reconstruction: the measures, what it consumed, and its configuration.
 
 use crate::options::SearchMode;
+use scatterfarm_search::refine::RefineConfig;
 use scatterfarm_search::similarity::Metric;
 use scatterfarm_search::{Bounds, CoarseLevels, Race};
 use serde::{Deserialize, Serialize};
@@ -45,6 +46,9 @@ pub struct Configuration {
     pub positions: u32,
     pub directions: u32,
     pub seed: u64,
+    /// The refinement stage as it ran (absent: none); its photons are per source.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine: Option<RefineConfig>,
 }
 
 /// One level in `report.json`.

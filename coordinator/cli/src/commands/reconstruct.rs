@@ -34,8 +34,9 @@ pub struct ReconstructArgs {
     /// from it after an interruption.
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// No progress bar (for scripts and benchmarks).
-    #[arg(long, hide = true)]
+    /// No progress bar and no progress logs: warnings and errors only (for scripts and
+    /// benchmarks; RUST_LOG still chooses the logs where it is set).
+    #[arg(long)]
     pub quiet: bool,
 }
 

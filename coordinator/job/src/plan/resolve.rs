@@ -109,31 +109,29 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
             geometries.grid
         );
     }
-    let search = Search::new(
-        SearchConfig {
-            grid: geometries.grid,
-            permutations: spec.permutations,
-            seed: spec.seed,
-            candidates: candidates.clone(),
-            seeding: options.seeding,
-            photons: options.photons.clone(),
-            early_step2: options.early_step2,
-            tie_z: options.tie_z,
-            tiebreak: options.tiebreak.map(|(_, t)| t),
-            coarse_levels: options.coarse_levels,
-            refine: options.refine.clone().map(|mut r| {
-                // A differential render holds one f64 matrix of estimates per change.
-                let per_change = geometries.search.sources() * geometries.search.bins() * 8;
-                let fit = (256usize << 20) / per_change.max(1);
-                r.changes_per_render = r
-                    .changes_per_render
-                    .min(fit.clamp(1, u32::MAX as usize) as u32);
-                r.pixel_mm = size_mm / f64::from(geometries.grid.max(1));
-                r
-            }),
-        },
-        table,
-    )?;
+    let refine = options.refine.clone().map(|mut r| {
+        // A differential render holds one f64 matrix of estimates per change.
+        let per_change = geometries.search.sources() * geometries.search.bins() * 8;
+        let fit = (256usize << 20) / per_change.max(1);
+        r.changes_per_render = r
+            .changes_per_render
+            .min(fit.clamp(1, u32::MAX as usize) as u32);
+        r.pixel_mm = size_mm / f64::from(geometries.grid.max(1));
+        r
+    });
+    let search_config = SearchConfig {
+        grid: geometries.grid,
+        permutations: spec.permutations,
+        seed: spec.seed,
+        candidates,
+        seeding: options.seeding,
+        photons: options.photons.clone(),
+        early_step2: options.early_step2,
+        tie_z: options.tie_z,
+        tiebreak: options.tiebreak.map(|(_, t)| t),
+        coarse_levels: options.coarse_levels,
+        refine,
+    };
     let config = configuration(
         spec,
         &options,
@@ -141,8 +139,9 @@ pub(super) fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
         &target,
         calibration_name,
         dictionary,
-        candidates,
+        &search_config,
     );
+    let search = Search::new(search_config, table)?;
     Ok(Plan {
         config,
         truth,
@@ -387,7 +386,7 @@ fn configuration(
     target: &TargetPlan,
     calibration_material: String,
     dictionary: Option<Vec<String>>,
-    candidates: Candidates,
+    search: &SearchConfig,
 ) -> Configuration {
     let geometry = &geometries.target;
     Configuration {
@@ -397,8 +396,8 @@ fn configuration(
         calibration_material,
         dictionary,
         random_materials: spec.random_materials,
-        bounds: match candidates {
-            Candidates::Random { bounds, .. } => Some(bounds),
+        bounds: match &search.candidates {
+            Candidates::Random { bounds, .. } => Some(*bounds),
             Candidates::Dictionary(_) => None,
         },
         permutations: spec.permutations,
@@ -423,5 +422,6 @@ fn configuration(
         positions: geometry.positions,
         directions: geometry.directions,
         seed: spec.seed,
+        refine: search.refine.clone(),
     }
 }
