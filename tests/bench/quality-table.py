@@ -2,11 +2,13 @@
 """Prints the quality table (markdown) from the JSON that quality.sh and quality-each.sh write:
 one row per (scene, search) with the mean pixel accuracy over its seeds, the level-0 map's,
 photons, wall seconds, the truth check's z and the wrong pixels the target tells and does not
-(a search whose targets have other than 200 000 photons per source is named with them), and
+(a search whose targets have other than 200 000 photons per source is named with them, and a
+run of quality-each.sh's TAG by it in brackets), and
 the runs that were stopped (their logs end with "stopped after").
 Usage: python3 tests/bench/quality-table.py [FILE.json|DIR]..."""
 import json
 import pathlib
+import re
 import sys
 
 paths = [pathlib.Path(p) for p in sys.argv[1:]] or [pathlib.Path(__file__).parent / "quality"]
@@ -24,7 +26,7 @@ for f in files:
     for key, part in [("refine_screen=differential", "differential"),
                       ("refine_direct_photons=12800", "direct8"), ("refine_z=2", "z2"),
                       ("refine_swaps=true", "swaps"), ("refine_blocks=true", "blocks"),
-                      ("refine_simplify_z=1", "simplify")]:
+                      ("refine_simplify_z=1", "simplify"), ("refine_grow=true", "grow")]:
         if key in settings:
             name += "-" + part
     name += "".join("-coarse" + s.split("=", 1)[1] for s in settings if s.startswith("coarse_levels="))
@@ -32,6 +34,10 @@ for f in files:
     target = (d.get("configuration") or {}).get("target_photons", 200000)
     if target != 200000:
         name += f" (targets {target // 1000} k)"
+    # A TAG of quality-each.sh (another build of the same recipe) ends the file's name.
+    tag = re.search(r"-seeds[0-9-]+(?:-target[0-9]+)?-(?!target[0-9]+$)([^0-9-].*)$", f.stem)
+    if tag:
+        name += f" [{tag.group(1)}]"
     for r in d["runs"]:
         runs_of.setdefault((r["scene"], name), []).append(r)
 def wrong(r):

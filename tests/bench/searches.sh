@@ -12,7 +12,8 @@
 #   blocks    2 × 2 blocks and neighbouring pairs set wholly to each material in the sweeps;
 #   simplify  simplification rounds at 1 paired standard error where the stage would end;
 #   grow      growth rounds where the stage would end: small objects grown by their neighbours
-#             and recoloured, each rendered on its own (refine_grow);
+#             and recoloured, each rendered on its own, the best tried when none wins
+#             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON);
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
 #             the one-material map); coarseauto: cut after level 0 where its material
 #             scatters (`coarse_levels = "auto"`).

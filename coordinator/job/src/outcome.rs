@@ -316,6 +316,8 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
             pixel_accuracy: (h.map.len() == grid * grid)
                 .then(|| measures(&h.map).map(|m| m.0))
                 .flatten(),
+            growth: h.growth,
+            trial_kept: h.trial_kept,
         })
         .collect();
     let convergence = convergence(scatterfarm_search::convergence::curve(s.search), &|a| {

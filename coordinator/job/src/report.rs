@@ -126,4 +126,11 @@ pub struct SweepReport {
     pub similarity: f64,
     /// The map's pixel accuracy after the sweep, when the truth is known.
     pub pixel_accuracy: Option<f64>,
+    /// A growth round's (`refine_grow`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub growth: bool,
+    /// The end of a growth trial: whether the map the trial reached was kept (else the map
+    /// its round started from came back).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trial_kept: Option<bool>,
 }

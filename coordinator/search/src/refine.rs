@@ -113,9 +113,14 @@ pub struct RefineConfig {
     /// stand in for a larger one of a weaker material (one opaque pixel for a 3 × 2 block of
     /// `uniform` on fig7f): no single pixel then improves the map, and the recolour of the
     /// grown object is too noisy for a differential render to estimate. A round that changes
-    /// the map lets the sweeps go on from it (they trim what it grew too far); one that
-    /// changes nothing lets the stage go on as without it. [`MAX_GROWTHS`] rounds at most, and
-    /// none twice on one map.
+    /// the map lets the sweeps go on from it (they trim what it grew too far). In a round that
+    /// changes nothing, its best grown map is **tried** ([`Trial`]): the sweeps go on from it
+    /// as from a confirmed map, and where they would end, the map they reached is rendered
+    /// beside the round's start on a fresh seed at the confirmation photons; it stays if it
+    /// beats the start by `z` paired standard errors, else the start comes back and the stage
+    /// goes on as without the round. A grown map that fits worse than the stand-in (it grew
+    /// into pixels the object lacks) can so still lead to the object. [`MAX_GROWTHS`] rounds
+    /// at most, and none twice on one map.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub grow_objects: bool,
 }
@@ -279,6 +284,18 @@ enum Waiting {
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         filled: bool,
     },
+    /// A growth trial's end ([`Trial`]): the map the trial's sweeps reached, then the map its
+    /// round started from, rendered on a fresh seed.
+    Trial,
+}
+
+/// A growth round's best grown map, tried although it did not win: the sweeps go on from it,
+/// and where they would end, the map they reach is compared with `from` on a fresh seed
+/// ([`Stream::RefineTrial`]); the better of the two stays.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Trial {
+    /// The map the growth round started from.
+    from: Vec<u16>,
 }
 
 /// One finished sweep, for reports.
@@ -304,6 +321,10 @@ pub struct SweepRecord {
     /// A growth round ([`RefineConfig::grow_objects`]).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub growth: bool,
+    /// After a growth trial ended: whether the map the trial reached replaced the map its
+    /// round started from (this record's `map` is the one kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trial_kept: Option<bool>,
 }
 
 /// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
@@ -387,6 +408,9 @@ pub struct Refinement {
     /// The map of the last growth round that changed nothing (none is run on it again).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     grown: Option<Vec<u16>>,
+    /// The growth trial under way, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    trial: Option<Trial>,
     waiting: Option<Waiting>,
     /// The pending requests.
     pending: Vec<RefineRequest>,
@@ -450,6 +474,7 @@ impl Refinement {
             growing: false,
             growths: 0,
             grown: None,
+            trial: None,
             waiting: None,
             pending: Vec::new(),
             history: Vec::new(),
@@ -743,6 +768,10 @@ impl Refinement {
     /// (A first round before any escalation, where sweeps are cheapest, ended fig7k lower in
     /// the one run measured, `docs/model.md`.)
     fn escalate_or_end(&mut self) {
+        if self.trial.is_some() {
+            self.emit_trial_end();
+            return;
+        }
         let may_simplify = self.config.simplify_z.is_some()
             && self.simplifications < MAX_SIMPLIFICATIONS
             && self.sweep + 1 < self.config.max_sweeps
@@ -774,7 +803,82 @@ impl Refinement {
         }
     }
 
+    /// Tries `map`, a growth round's best grown map that did not win ([`Trial`]): the next
+    /// sweep is of it.
+    fn start_trial(&mut self, map: Vec<u16>) {
+        self.growing = false;
+        self.trial = Some(Trial {
+            from: std::mem::replace(&mut self.current, map),
+        });
+        self.current_score = None;
+        self.stalls = 0;
+        self.sweep += 1;
+        self.emit_sweep();
+    }
+
+    /// Renders the map a trial reached and the map its round started from on a fresh seed.
+    fn emit_trial_end(&mut self) {
+        let Some(trial) = &self.trial else {
+            return;
+        };
+        let seed = seeds::derive(self.job_seed, Stream::RefineTrial(self.sweep));
+        let photons = self.escalated(self.config.confirm_photons);
+        self.pending = [self.current.clone(), trial.from.clone()]
+            .into_iter()
+            .map(|assignment| RefineRequest {
+                assignment,
+                seed,
+                photons,
+                changes: Vec::new(),
+            })
+            .collect();
+        self.waiting = Some(Waiting::Trial);
+    }
+
+    /// A trial's end: the map it reached stays if it beats the map its round started from by
+    /// `z` paired standard errors; else that map comes back, and no growth round runs on it
+    /// again. The stage then goes on as where it would have ended.
+    fn trial_scored(&mut self, scores: &[BlockScore]) {
+        let Some(trial) = self.trial.take() else {
+            return;
+        };
+        let (reached, from) = (scores[0], scores[1]);
+        let kept = self.z_of(reached, from).is_some_and(|z| z > self.config.z);
+        let changed = self
+            .current
+            .iter()
+            .zip(&trial.from)
+            .filter(|(a, b)| a != b)
+            .count() as u32;
+        if kept {
+            self.current_score = Some(reached.value);
+        } else {
+            self.current = trial.from;
+            self.current_score = Some(from.value);
+            self.grown = Some(self.current.clone());
+        }
+        self.stalls = 0;
+        self.history.push(SweepRecord {
+            sweep: self.sweep,
+            tried: 1,
+            candidates: u32::from(kept),
+            changed: if kept { changed } else { 0 },
+            score: self.current_score.unwrap_or(from.value),
+            reweighted: 0,
+            map: self.current.clone(),
+            simplification: false,
+            growth: true,
+            trial_kept: Some(kept),
+        });
+        self.escalate_or_end();
+    }
+
     fn end(&mut self) {
+        if self.trial.is_some() {
+            // A trial never ends the stage on its own map: it is compared first.
+            self.emit_trial_end();
+            return;
+        }
         self.waiting = None;
         self.pending.clear();
         self.simplifying = false;
@@ -1261,6 +1365,7 @@ impl Refinement {
                 reweighted,
                 filled,
             } => self.confirm_scored(options, reweighted, filled, scores),
+            Waiting::Trial => self.trial_scored(scores),
         }
         Ok(())
     }
@@ -1361,12 +1466,27 @@ impl Refinement {
                 map: self.current.clone(),
                 simplification: self.simplifying,
                 growth: self.growing,
+                trial_kept: None,
             });
             if self.simplifying {
                 self.simplifying = false;
                 self.simplified = Some(self.current.clone());
             }
             if self.growing {
+                // No grown map won: the best of them is tried (ties: the first).
+                let best = z_of_change
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(k, z)| z.filter(|z| z.is_finite() || *z > 0.0).map(|z| (z, k)))
+                    .fold(None::<(f64, usize)>, |best, (z, k)| match best {
+                        Some((bz, _)) if bz >= z => best,
+                        _ => Some((z, k)),
+                    });
+                if let Some((_, k)) = best {
+                    let map = self.apply(&changes[k]);
+                    self.start_trial(map);
+                    return;
+                }
                 self.growing = false;
                 self.grown = Some(self.current.clone());
             }
@@ -1466,6 +1586,7 @@ impl Refinement {
             map: self.current.clone(),
             simplification: self.simplifying,
             growth: self.growing,
+            trial_kept: None,
         });
         self.waiting = Some(Waiting::Confirm {
             options,
@@ -1547,6 +1668,14 @@ impl Refinement {
             // A round that changed the map: sweeps go on from it; one that did not: as where
             // the stage would have ended without it (escalate, or end).
             let unchanged = self.stalls > 0;
+            if unchanged && self.growing {
+                // The grown map did not hold: the best of them alone is tried.
+                if let Some(best) = options.last() {
+                    let best = best.clone();
+                    self.start_trial(best);
+                    return;
+                }
+            }
             if unchanged {
                 self.stalls = 0;
                 if self.simplifying {
@@ -1665,7 +1794,16 @@ mod tests {
         score_of: &dyn Fn(&[u16], u64, u32) -> Scored,
         on_step: &mut dyn FnMut(&Refinement),
     ) -> Refinement {
-        let mut r = Refinement::new(config, 4, materials, 1, start, reweightable, opaque);
+        let r = Refinement::new(config, 4, materials, 1, start, reweightable, opaque);
+        drive(r, score_of, on_step)
+    }
+
+    /// Runs `r` to its end against `score_of`, handing each step's state to `on_step`.
+    fn drive(
+        mut r: Refinement,
+        score_of: &dyn Fn(&[u16], u64, u32) -> Scored,
+        on_step: &mut dyn FnMut(&Refinement),
+    ) -> Refinement {
         let mut steps = 0;
         while !r.is_finished() {
             on_step(&r);
@@ -1705,27 +1843,10 @@ mod tests {
 
     #[test]
     fn growth_rounds_replace_a_strong_pixel_standing_in_for_a_weak_block() {
-        // A 4 × 4 map: the truth is a 2 × 2 block B (pixels 5, 6, 9, 10) of the weak material
-        // 1 in background 0. One pixel of the strong material 2 (worth four weak ones) at 5
-        // fits the counts almost as well, and no single pixel, move or recolour improves it.
-        let block = [5usize, 6, 9, 10];
-        let score = |a: &[u16], seed: u64, _photons: u32| -> Scored {
-            let weight = |m: u16| [0.0, 1.0, 4.0][usize::from(m)];
-            let signal: f64 = block.iter().map(|&p| weight(a[p])).sum();
-            let outside = (0..16).filter(|p| !block.contains(p) && a[*p] != 0).count() as f64;
-            let strong = a.iter().filter(|&&m| m == 2).count() as f64;
-            let badness = 2.0 * (signal - 4.0).powi(2) + 0.2 * outside + 1.5 * strong;
-            let objects = a.iter().filter(|&&m| m != 0).count() as f64;
-            let blocks: Vec<f64> = (0..8)
-                .map(|b| {
-                    let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
-                    -badness / 8.0 + sign * 0.001 * objects + ((seed % 97) as f64) * 0.01
-                })
-                .collect();
-            (blocks.iter().sum(), blocks)
-        };
-        let mut start = vec![0u16; 16];
-        start[5] = 2;
+        // Each pixel grown outside the block costs less than the strong pixel: the grown map
+        // wins outright.
+        let score = stand_in_scores(0.2);
+        let start = stand_in_start();
         let run = |grow_objects| {
             let config = RefineConfig {
                 grow_objects,
@@ -1748,13 +1869,16 @@ mod tests {
         // With them, the strong pixel's neighbourhood becomes the weak material, and the
         // sweeps after it trim what grew outside the block: the truth.
         let grown = run(true);
-        let mut truth = [0u16; 16];
-        for p in block {
-            truth[p] = 1;
-        }
-        assert_eq!(grown.current().0, &truth[..], "{:?}", grown.history());
+        assert_eq!(
+            grown.current().0,
+            &stand_in_truth()[..],
+            "{:?}",
+            grown.history()
+        );
         let rounds: Vec<&SweepRecord> = grown.history().iter().filter(|h| h.growth).collect();
         assert!(rounds.first().is_some_and(|h| h.changed == 9), "{rounds:?}");
+        // It won outright: no trial (a later round on the truth tries, and loses, one).
+        assert!(rounds[0].trial_kept.is_none(), "{rounds:?}");
         // A round that changes nothing is not run again on its map.
         assert!(rounds.len() <= MAX_GROWTHS as usize);
         assert!(grown.is_finished());
@@ -1768,6 +1892,120 @@ mod tests {
             .iter()
             .zip(grown.history())
             .all(|(a, b)| a.growth == b.growth));
+    }
+
+    /// A 4 × 4 map whose truth is a 2 × 2 block (pixels 5, 6, 9, 10) of the weak material 1 in
+    /// background 0, scored without noise: one pixel of the strong material 2 (worth four weak
+    /// ones) at 5 fits the counts almost as well, and no single pixel, move or recolour
+    /// improves it. Each non-background pixel outside the block costs `outside`.
+    fn stand_in_scores(outside: f64) -> impl Fn(&[u16], u64, u32) -> Scored {
+        const BLOCK: [usize; 4] = [5, 6, 9, 10];
+        move |a: &[u16], seed: u64, _photons: u32| -> Scored {
+            let weight = |m: u16| [0.0, 1.0, 4.0][usize::from(m)];
+            let signal: f64 = BLOCK.iter().map(|&p| weight(a[p])).sum();
+            let grown = (0..16).filter(|p| !BLOCK.contains(p) && a[*p] != 0).count() as f64;
+            let strong = a.iter().filter(|&&m| m == 2).count() as f64;
+            let badness = 2.0 * (signal - 4.0).powi(2) + outside * grown + 1.5 * strong;
+            let objects = a.iter().filter(|&&m| m != 0).count() as f64;
+            let blocks: Vec<f64> = (0..8)
+                .map(|b| {
+                    let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
+                    -badness / 8.0 + sign * 0.001 * objects + ((seed % 97) as f64) * 0.01
+                })
+                .collect();
+            (blocks.iter().sum(), blocks)
+        }
+    }
+
+    /// The stand-in of [`stand_in_scores`]: the strong pixel at 5.
+    fn stand_in_start() -> Vec<u16> {
+        let mut start = vec![0u16; 16];
+        start[5] = 2;
+        start
+    }
+
+    fn stand_in_truth() -> Vec<u16> {
+        let mut truth = vec![0u16; 16];
+        for p in [5, 6, 9, 10] {
+            truth[p] = 1;
+        }
+        truth
+    }
+
+    #[test]
+    fn a_grown_map_that_loses_is_tried_and_kept_only_if_its_sweeps_beat_the_start() {
+        // Grown too far, the map loses to the strong pixel (5 pixels outside the block cost
+        // more than the strong pixel), but the sweeps from it trim it to the truth.
+        let score = stand_in_scores(0.4);
+        let start = stand_in_start();
+        let run = |max_sweeps| {
+            let config = RefineConfig {
+                grow_objects: true,
+                max_sweeps,
+                ..config()
+            };
+            run_scored(
+                config,
+                start.clone(),
+                vec![0, 1, 2],
+                Vec::new(),
+                Vec::new(),
+                &score,
+            )
+        };
+        let tried = run(16);
+        assert_eq!(
+            tried.current().0,
+            &stand_in_truth()[..],
+            "{:?}",
+            tried.history()
+        );
+        let ends: Vec<&SweepRecord> = tried
+            .history()
+            .iter()
+            .filter(|h| h.trial_kept.is_some())
+            .collect();
+        assert!(
+            ends.first().is_some_and(|h| h.trial_kept == Some(true)),
+            "{ends:?}"
+        );
+        assert_eq!(ends[0].map, stand_in_truth(), "{ends:?}");
+        assert!(tried.is_finished());
+        // The trial survives a checkpoint: resumed midway, the run ends the same.
+        let mut steps = 0;
+        let mut midway = None;
+        run_traced(
+            RefineConfig {
+                grow_objects: true,
+                max_sweeps: 16,
+                ..config()
+            },
+            start.clone(),
+            vec![0, 1, 2],
+            Vec::new(),
+            Vec::new(),
+            &score,
+            &mut |r: &Refinement| {
+                steps += 1;
+                if r.trial.is_some() && midway.is_none() {
+                    midway = Some(serde_json::to_string(r).unwrap());
+                }
+            },
+        );
+        let midway: Refinement = serde_json::from_str(&midway.expect("a trial ran")).unwrap();
+        assert!(steps > 0 && midway.trial.is_some());
+        let resumed = drive(midway, &score, &mut |_| {});
+        assert_eq!(resumed.current(), tried.current());
+        assert_eq!(resumed.history().len(), tried.history().len());
+        // Cut short by the sweep limit right after the round, the trial has not trimmed
+        // anything: its map loses, and the strong pixel comes back.
+        let round = tried.history().iter().position(|h| h.growth).unwrap() as u32;
+        let cut = run(round + 1);
+        assert_eq!(cut.current().0, &start[..], "{:?}", cut.history());
+        let last = cut.history().last().unwrap();
+        assert_eq!(last.trial_kept, Some(false), "{:?}", cut.history());
+        assert_eq!(last.map, start);
+        assert!(cut.is_finished());
     }
 
     #[test]

@@ -27,6 +27,9 @@ pub enum Stream {
     RefineSweep(u32),
     /// The confirmation renders after refinement sweep `k`.
     RefineConfirm(u32),
+    /// The end of a growth trial after refinement sweep `k`: the map it reached and the map
+    /// its round started from.
+    RefineTrial(u32),
     /// The quality bench's check of a result against the truth, on photons no search render
     /// used.
     TruthCheck,
@@ -44,6 +47,7 @@ impl Stream {
             Stream::Rescore(l) => ("rescore", u64::from(*l)),
             Stream::RefineSweep(k) => ("refine-sweep", u64::from(*k)),
             Stream::RefineConfirm(k) => ("refine-confirm", u64::from(*k)),
+            Stream::RefineTrial(k) => ("refine-trial", u64::from(*k)),
             Stream::TruthCheck => ("truth-check", 0),
         }
     }
