@@ -132,6 +132,9 @@ fn a_coordinator_killed_four_times_resumes_to_the_same_result() {
     farm.wait_workers(&["a", "b"]);
 }
 
+/// How long the workers of [`finished_through_a_restart`] run between two status reads.
+const STEP: std::time::Duration = std::time::Duration::from_millis(20);
+
 /// Submits `job_file` to a farm of two workers, kills the coordinator once the job has answered
 /// more than `mark` of its requests, starts it again on the same data and waits for the job to
 /// finish: the farm and the job's id.
@@ -141,10 +144,37 @@ fn finished_through_a_restart(job_file: &str, mark: f64) -> (Farm, String) {
     farm.start_worker("b", &[]);
     farm.wait_workers(&["a", "b"]);
     let id = farm.submit_file(job_file);
-    let before = farm.wait_for(&id, &format!("{mark} of the requests"), |s| {
-        s["state"] == "searching" && fraction(s) > mark
-    });
+    // The workers run in short steps and are stopped (SIGSTOP) while the status is read, so a
+    // short job cannot pass the mark, or end, between two polls on a loaded machine.
+    let what = format!("{mark} of the requests");
+    let deadline = std::time::Instant::now() + JOB_LIMIT;
+    let before = loop {
+        for w in &farm.workers {
+            w.signal("STOP");
+        }
+        let s = farm.status(&id);
+        assert!(
+            s["state"] != "finished" && s["state"] != "failed",
+            "job {id} ended before {what}: {s:#}\n{}",
+            farm.logs()
+        );
+        if s["state"] == "searching" && fraction(&s) > mark {
+            break s;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "job {id}: no {what} within {JOB_LIMIT:?}: {s:#}\n{}",
+            farm.logs()
+        );
+        for w in &farm.workers {
+            w.signal("CONT");
+        }
+        std::thread::sleep(STEP);
+    };
     farm.kill_coordinator();
+    for w in &farm.workers {
+        w.signal("CONT");
+    }
     farm.start_coordinator();
     let after = farm.status(&id);
     assert!(
@@ -160,8 +190,6 @@ fn a_fast_job_through_a_restart_ends_as_the_fast_search_in_one_process() {
     // Racing (first stages extended by their contenders' groups), re-scoring, early step 2
     // and common random numbers, across processes and a coordinator killed mid-search, which
     // loses the first-stage counts it held.
-    // A fifth of the requests: the job is short, and a later mark can pass between two polls
-    // on a loaded machine.
     let (farm, id) = finished_through_a_restart("job/fast.toml", 0.2);
     farm.assert_result_of(Search::Fast, &id, true);
     let (report, _) = farm.result(&id);
