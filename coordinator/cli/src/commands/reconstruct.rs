@@ -82,10 +82,28 @@ pub fn run_checked(
         let ended = scatterfarm_search::convergence::stages_ended(s);
         if ended > stages {
             let curve = scatterfarm_search::convergence::curve(s);
-            for p in &curve[stages.min(curve.len())..] {
+            let levels = s.levels().len();
+            for (i, p) in curve.iter().enumerate().skip(stages) {
                 let stage = match p.stage {
                     scatterfarm_search::convergence::Stage::Level(l) => format!("level {l}"),
-                    scatterfarm_search::convergence::Stage::Sweep(n) => format!("sweep {n}"),
+                    scatterfarm_search::convergence::Stage::Sweep(n) => {
+                        // What kind of sweep it was, where it was not a plain one.
+                        let record = s
+                            .refinement()
+                            .and_then(|r| r.history().get(i.saturating_sub(levels)));
+                        let kind = match record {
+                            Some(h) if h.trial_kept == Some(true) => {
+                                " (a growth trial's end: its map kept)"
+                            }
+                            Some(h) if h.trial_kept == Some(false) => {
+                                " (a growth trial's end: its map given back)"
+                            }
+                            Some(h) if h.growth => " (a growth round)",
+                            Some(h) if h.simplification => " (a simplification round)",
+                            _ => "",
+                        };
+                        format!("sweep {n}{kind}")
+                    }
                 };
                 let accuracy = plan
                     .truth
