@@ -358,6 +358,22 @@ struct Reach {
     changes: BTreeSet<Vec<(u32, u16)>>,
 }
 
+/// A plain render (no changes estimated) of each of `maps`, in order, on `seed`.
+fn plain_renders(
+    maps: impl IntoIterator<Item = Vec<u16>>,
+    seed: u64,
+    photons: u32,
+) -> Vec<RefineRequest> {
+    maps.into_iter()
+        .map(|assignment| RefineRequest {
+            assignment,
+            seed,
+            photons,
+            changes: Vec::new(),
+        })
+        .collect()
+}
+
 /// The refinement state machine.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Refinement {
@@ -549,15 +565,11 @@ impl Refinement {
             // Every grown map rendered on its own, paired with a render of `M` on its seed.
             let photons = (photons / GROWTH_FRACTION).max(1);
             let maps: Vec<Vec<u16>> = changes.iter().map(|c| self.apply(c)).collect();
-            self.pending = std::iter::once(self.current.clone())
-                .chain(maps)
-                .map(|assignment| RefineRequest {
-                    assignment,
-                    seed,
-                    photons,
-                    changes: Vec::new(),
-                })
-                .collect();
+            self.pending = plain_renders(
+                std::iter::once(self.current.clone()).chain(maps),
+                seed,
+                photons,
+            );
             self.waiting = Some(Waiting::Sweep {
                 changes,
                 reweighted: Vec::new(),
@@ -725,17 +737,8 @@ impl Refinement {
         maps: Vec<Vec<u16>>,
     ) -> Vec<RefineRequest> {
         let photons = self.direct_photons(photons);
-        with_reference
-            .then(|| self.current.clone())
-            .into_iter()
-            .chain(maps)
-            .map(|assignment| RefineRequest {
-                assignment,
-                seed,
-                photons,
-                changes: Vec::new(),
-            })
-            .collect()
+        let reference = with_reference.then(|| self.current.clone());
+        plain_renders(reference.into_iter().chain(maps), seed, photons)
     }
 
     /// Photons per source of a differential sweep's direct renders, for a sweep of `photons`
@@ -823,15 +826,7 @@ impl Refinement {
         };
         let seed = seeds::derive(self.job_seed, Stream::RefineTrial(self.sweep));
         let photons = self.escalated(self.config.confirm_photons);
-        self.pending = [self.current.clone(), trial.from.clone()]
-            .into_iter()
-            .map(|assignment| RefineRequest {
-                assignment,
-                seed,
-                photons,
-                changes: Vec::new(),
-            })
-            .collect();
+        self.pending = plain_renders([self.current.clone(), trial.from.clone()], seed, photons);
         self.waiting = Some(Waiting::Trial);
     }
 
@@ -1845,23 +1840,8 @@ mod tests {
     fn growth_rounds_replace_a_strong_pixel_standing_in_for_a_weak_block() {
         // Each pixel grown outside the block costs less than the strong pixel: the grown map
         // wins outright.
-        let score = stand_in_scores(0.2);
         let start = stand_in_start();
-        let run = |grow_objects| {
-            let config = RefineConfig {
-                grow_objects,
-                max_sweeps: 12,
-                ..config()
-            };
-            run_scored(
-                config,
-                start.clone(),
-                vec![0, 1, 2],
-                Vec::new(),
-                Vec::new(),
-                &score,
-            )
-        };
+        let run = |grow_objects| run_stand_in(0.2, grow_objects, 12, &mut |_| {});
         // Without growth rounds the start is where the stage ends.
         let kept = run(false);
         assert_eq!(kept.current().0, &start[..]);
@@ -1917,6 +1897,31 @@ mod tests {
         }
     }
 
+    /// A refinement of [`stand_in_start`] against [`stand_in_scores`] of `outside`, over the
+    /// three materials, handing each step's state to `on_step`.
+    fn run_stand_in(
+        outside: f64,
+        grow_objects: bool,
+        max_sweeps: u32,
+        on_step: &mut dyn FnMut(&Refinement),
+    ) -> Refinement {
+        let config = RefineConfig {
+            grow_objects,
+            max_sweeps,
+            ..config()
+        };
+        let score = stand_in_scores(outside);
+        run_traced(
+            config,
+            stand_in_start(),
+            vec![0, 1, 2],
+            Vec::new(),
+            Vec::new(),
+            &score,
+            on_step,
+        )
+    }
+
     /// The stand-in of [`stand_in_scores`]: the strong pixel at 5.
     fn stand_in_start() -> Vec<u16> {
         let mut start = vec![0u16; 16];
@@ -1936,23 +1941,8 @@ mod tests {
     fn a_grown_map_that_loses_is_tried_and_kept_only_if_its_sweeps_beat_the_start() {
         // Grown too far, the map loses to the strong pixel (5 pixels outside the block cost
         // more than the strong pixel), but the sweeps from it trim it to the truth.
-        let score = stand_in_scores(0.4);
         let start = stand_in_start();
-        let run = |max_sweeps| {
-            let config = RefineConfig {
-                grow_objects: true,
-                max_sweeps,
-                ..config()
-            };
-            run_scored(
-                config,
-                start.clone(),
-                vec![0, 1, 2],
-                Vec::new(),
-                Vec::new(),
-                &score,
-            )
-        };
+        let run = |max_sweeps| run_stand_in(0.4, true, max_sweeps, &mut |_| {});
         let tried = run(16);
         assert_eq!(
             tried.current().0,
@@ -1974,27 +1964,15 @@ mod tests {
         // The trial survives a checkpoint: resumed midway, the run ends the same.
         let mut steps = 0;
         let mut midway = None;
-        run_traced(
-            RefineConfig {
-                grow_objects: true,
-                max_sweeps: 16,
-                ..config()
-            },
-            start.clone(),
-            vec![0, 1, 2],
-            Vec::new(),
-            Vec::new(),
-            &score,
-            &mut |r: &Refinement| {
-                steps += 1;
-                if r.trial.is_some() && midway.is_none() {
-                    midway = Some(serde_json::to_string(r).unwrap());
-                }
-            },
-        );
+        run_stand_in(0.4, true, 16, &mut |r: &Refinement| {
+            steps += 1;
+            if r.trial.is_some() && midway.is_none() {
+                midway = Some(serde_json::to_string(r).unwrap());
+            }
+        });
         let midway: Refinement = serde_json::from_str(&midway.expect("a trial ran")).unwrap();
         assert!(steps > 0 && midway.trial.is_some());
-        let resumed = drive(midway, &score, &mut |_| {});
+        let resumed = drive(midway, &stand_in_scores(0.4), &mut |_| {});
         assert_eq!(resumed.current(), tried.current());
         assert_eq!(resumed.history().len(), tried.history().len());
         // Cut short by the sweep limit right after the round, the trial has not trimmed
