@@ -1472,7 +1472,7 @@ impl Refinement {
                 let best = z_of_change
                     .iter()
                     .enumerate()
-                    .filter_map(|(k, z)| z.filter(|z| z.is_finite() || *z > 0.0).map(|z| (z, k)))
+                    .filter_map(|(k, z)| z.filter(|z| *z > f64::NEG_INFINITY).map(|z| (z, k)))
                     .fold(None::<(f64, usize)>, |best, (z, k)| match best {
                         Some((bz, _)) if bz >= z => best,
                         _ => Some((z, k)),
@@ -1665,8 +1665,7 @@ impl Refinement {
             let unchanged = self.stalls > 0;
             if unchanged && self.growing {
                 // The grown map did not hold: the best of them alone is tried.
-                if let Some(best) = options.last() {
-                    let best = best.clone();
+                if let Some(best) = options.last().cloned() {
                     self.start_trial(best);
                     return;
                 }
