@@ -299,6 +299,7 @@ impl JobSpec {
                     blocks: self.refine_blocks.unwrap_or(false),
                     simplify_z: self.refine_simplify_z,
                     grow_objects: self.refine_grow.unwrap_or(false),
+                    grow_trial_z: self.refine_grow_trial_z,
                 };
                 if let Some(problem) = config.problem() {
                     anyhow::bail!("refine_* (--refine-*): {problem}");

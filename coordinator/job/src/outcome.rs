@@ -318,6 +318,7 @@ pub fn write_outputs(out: &Path, s: &Summary<'_>) -> Result<crate::report::Repor
                 .flatten(),
             growth: h.growth,
             trial_kept: h.trial_kept,
+            grown_z: h.grown_z,
         })
         .collect();
     let convergence = convergence(scatterfarm_search::convergence::curve(s.search), &|a| {

@@ -133,4 +133,8 @@ pub struct SweepReport {
     /// its round started from came back).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trial_kept: Option<bool>,
+    /// A growth round in which no grown map won: the best grown map's paired z against the
+    /// current map (it is tried where above `refine_grow_trial_z`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grown_z: Option<f64>,
 }

@@ -154,6 +154,9 @@ pub struct JobSpec {
     /// grown by its neighbours and set wholly to each other material, each rendered on its
     /// own (likelihood: false).
     pub refine_grow: Option<bool>,
+    /// A growth round whose grown maps all lose tries its best only where that map's paired z
+    /// against the current map is above this (likelihood: every such round tries it).
+    pub refine_grow_trial_z: Option<f64>,
     /// A refinement sweep of a map swept before renders directly only the changes whose
     /// paired z there was above this (likelihood: -1; `-inf`: every change).
     pub refine_retest_z: Option<f64>,
@@ -212,6 +215,7 @@ impl Default for JobSpec {
             refine_blocks: None,
             refine_simplify_z: None,
             refine_grow: None,
+            refine_grow_trial_z: None,
             refine_retest_z: None,
             name: None,
             engine_fingerprint: None,

@@ -123,6 +123,11 @@ pub struct RefineConfig {
     /// at most, and none twice on one map.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub grow_objects: bool,
+    /// A growth round's best grown map is tried ([`Trial`]) only where its paired z against
+    /// the current map is above this; below it, the round ends as one without a trial. `None`:
+    /// every round whose grown maps all lose runs a trial.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grow_trial_z: Option<f64>,
 }
 
 /// The most simplification rounds one refinement runs ([`RefineConfig::simplify_z`]).
@@ -211,6 +216,11 @@ impl RefineConfig {
                 "the refinement's simplification z must be a number ≥ 0, got {}",
                 self.simplify_z.unwrap_or_default()
             ));
+        }
+        if self.grow_trial_z.is_some_and(f64::is_nan) {
+            return Some(
+                "the refinement's growth trial z must be a number (or -inf: every trial)".into(),
+            );
         }
         if self.retest_z.is_some_and(f64::is_nan) {
             return Some(
@@ -325,6 +335,10 @@ pub struct SweepRecord {
     /// round started from (this record's `map` is the one kept).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trial_kept: Option<bool>,
+    /// A growth round in which no grown map won: the paired z of the best of them against the
+    /// current map (on the round's renders), whether or not it was tried.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grown_z: Option<f64>,
 }
 
 /// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
@@ -864,6 +878,7 @@ impl Refinement {
             simplification: false,
             growth: true,
             trial_kept: Some(kept),
+            grown_z: None,
         });
         self.escalate_or_end();
     }
@@ -1462,6 +1477,7 @@ impl Refinement {
                 simplification: self.simplifying,
                 growth: self.growing,
                 trial_kept: None,
+                grown_z: None,
             });
             if self.simplifying {
                 self.simplifying = false;
@@ -1477,7 +1493,11 @@ impl Refinement {
                         Some((bz, _)) if bz >= z => best,
                         _ => Some((z, k)),
                     });
-                if let Some((_, k)) = best {
+                if let Some(h) = self.history.last_mut() {
+                    h.grown_z = best.map(|(z, _)| z);
+                }
+                let floor = self.config.grow_trial_z.unwrap_or(f64::NEG_INFINITY);
+                if let Some((_, k)) = best.filter(|&(z, _)| z > floor) {
                     let map = self.apply(&changes[k]);
                     self.start_trial(map);
                     return;
@@ -1582,6 +1602,7 @@ impl Refinement {
             simplification: self.simplifying,
             growth: self.growing,
             trial_kept: None,
+            grown_z: None,
         });
         self.waiting = Some(Waiting::Confirm {
             options,
@@ -1720,6 +1741,7 @@ mod tests {
             blocks: false,
             simplify_z: None,
             grow_objects: false,
+            grow_trial_z: None,
         }
     }
 
@@ -1983,6 +2005,41 @@ mod tests {
         assert_eq!(last.trial_kept, Some(false), "{:?}", cut.history());
         assert_eq!(last.map, start);
         assert!(cut.is_finished());
+        // The round records its best grown map's z. With a floor above it no trial runs, and
+        // the stand-in stays; with a floor below every round's, the trials run as without one.
+        let grown_z = tried.history().iter().find_map(|h| h.grown_z);
+        let grown_z = grown_z.expect("the round records its best grown map's z");
+        assert!(grown_z.is_finite() && grown_z < config().z, "{grown_z}");
+        let floored = |floor: f64| {
+            let config = RefineConfig {
+                grow_objects: true,
+                max_sweeps: 16,
+                grow_trial_z: Some(floor),
+                ..config()
+            };
+            let score = stand_in_scores(0.4);
+            run_traced(
+                config,
+                start.clone(),
+                vec![0, 1, 2],
+                Vec::new(),
+                Vec::new(),
+                &score,
+                &mut |_| {},
+            )
+        };
+        let above = floored(grown_z + 0.5);
+        assert!(above.history().iter().all(|h| h.trial_kept.is_none()));
+        assert_eq!(above.current().0, &start[..], "{:?}", above.history());
+        assert!(above.is_finished());
+        let lowest = tried
+            .history()
+            .iter()
+            .filter_map(|h| h.grown_z)
+            .fold(grown_z, f64::min);
+        let below = floored(lowest - 0.5);
+        assert_eq!(below.current(), tried.current());
+        assert_eq!(below.history(), tried.history());
     }
 
     #[test]
@@ -2323,6 +2380,15 @@ mod tests {
         }
         .problem()
         .is_some());
+        let trial_z = |z| {
+            RefineConfig {
+                grow_trial_z: Some(z),
+                ..config()
+            }
+            .problem()
+        };
+        assert!(trial_z(f64::NAN).is_some_and(|p| p.contains("growth trial z")));
+        assert!(trial_z(f64::NEG_INFINITY).is_none() && trial_z(-5.0).is_none());
     }
 
     /// Differential screening: the changes the reweighting covers ride on renders of the

@@ -195,6 +195,12 @@ pub struct JobArgs {
     /// changes (likelihood: false).
     #[arg(long, value_name = "BOOL")]
     pub refine_grow: Option<bool>,
+    /// A growth round in which no grown map wins tries the best of them (the sweeps go on
+    /// from it, and the map they reach is kept only if it beats the round's start) only where
+    /// that map's paired z against the current map is above Z (likelihood: every such round
+    /// tries it; -inf: the same).
+    #[arg(long, value_name = "Z", allow_hyphen_values = true)]
+    pub refine_grow_trial_z: Option<f64>,
     /// A refinement sweep of a map swept before (after a stall, or escalated) renders
     /// directly only the changes whose paired z on its last sweep was above this; changes a
     /// differential render estimates are always tried (likelihood: -1; -inf: every change).
@@ -249,6 +255,7 @@ impl JobArgs {
             refine_blocks: self.refine_blocks,
             refine_simplify_z: self.refine_simplify_z,
             refine_grow: self.refine_grow,
+            refine_grow_trial_z: self.refine_grow_trial_z,
             refine_retest_z: self.refine_retest_z,
             ..JobSpec::default()
         }

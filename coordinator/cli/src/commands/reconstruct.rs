@@ -93,14 +93,19 @@ pub fn run_checked(
                             .and_then(|r| r.history().get(i.saturating_sub(levels)));
                         let kind = match record {
                             Some(h) if h.trial_kept == Some(true) => {
-                                " (a growth trial's end: its map kept)"
+                                " (a growth trial's end: its map kept)".to_string()
                             }
                             Some(h) if h.trial_kept == Some(false) => {
-                                " (a growth trial's end: its map given back)"
+                                " (a growth trial's end: its map given back)".to_string()
                             }
-                            Some(h) if h.growth => " (a growth round)",
-                            Some(h) if h.simplification => " (a simplification round)",
-                            _ => "",
+                            Some(h) if h.growth => match h.grown_z {
+                                Some(z) => format!(
+                                    " (a growth round: no grown map won, the best at z {z:.1})"
+                                ),
+                                None => " (a growth round)".to_string(),
+                            },
+                            Some(h) if h.simplification => " (a simplification round)".to_string(),
+                            _ => String::new(),
                         };
                         format!("sweep {n}{kind}")
                     }

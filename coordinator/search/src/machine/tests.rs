@@ -781,6 +781,7 @@ fn small_refinement(screen: crate::refine::Screen) -> RefineConfig {
         blocks: false,
         simplify_z: None,
         grow_objects: false,
+        grow_trial_z: None,
     }
 }
 

@@ -37,6 +37,7 @@ fn fresh() -> Search {
         blocks: false,
         simplify_z: None,
         grow_objects: false,
+        grow_trial_z: None,
     };
     let config = SearchConfig {
         grid: GRID,
