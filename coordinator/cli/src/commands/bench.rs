@@ -222,6 +222,41 @@ pub struct QualityRow {
     pub sweeps: usize,
     pub changes_tried: u64,
     pub changes_reweighted: u64,
+    /// The refinement's growth rounds (`refine_grow`), in order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub growth: Vec<GrowthRound>,
+}
+
+/// A growth round of a bench run's refinement.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GrowthRound {
+    pub sweep: u32,
+    /// Where no grown map won: the best one's paired z against the map it grew from.
+    pub grown_z: Option<f64>,
+    /// How the trial the round started ended: its map kept or given back (`None`: no trial
+    /// ran, or the run stopped first).
+    pub trial_kept: Option<bool>,
+}
+
+/// The growth rounds of a refinement's sweeps, each with the end of the trial it started: a
+/// trial's end belongs to the last round before it.
+fn growth_rounds(sweeps: &[scatterfarm_job::report::SweepReport]) -> Vec<GrowthRound> {
+    let mut rounds: Vec<GrowthRound> = Vec::new();
+    for s in sweeps.iter().filter(|s| s.growth) {
+        match s.trial_kept {
+            None => rounds.push(GrowthRound {
+                sweep: s.sweep,
+                grown_z: s.grown_z,
+                trial_kept: None,
+            }),
+            Some(kept) => {
+                if let Some(round) = rounds.last_mut() {
+                    round.trial_kept = Some(kept);
+                }
+            }
+        }
+    }
+    rounds
 }
 
 /// A scene's rows averaged over the seeds.
@@ -437,6 +472,7 @@ fn run_reconstruct(args: ReconstructBenchArgs) -> Result<()> {
                     .iter()
                     .map(|s| u64::from(s.reweighted))
                     .sum(),
+                growth: growth_rounds(&report.refinement),
             };
             eprintln!(
                 "{:<10} {:>5} {:>8.1}% {:>7.1}% {:>9.3} {:>10.4} {:>8} {:>14} {:>9.1} {:>8.1} {:>12} {:>8}",
@@ -543,4 +579,58 @@ pub(super) fn emit(json: &serde_json::Value, out: Option<&std::path::Path>) -> R
         eprintln!("wrote {}", out.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scatterfarm_job::report::SweepReport;
+
+    fn sweep(
+        sweep: u32,
+        growth: bool,
+        trial_kept: Option<bool>,
+        grown_z: Option<f64>,
+    ) -> SweepReport {
+        SweepReport {
+            sweep,
+            tried: 1,
+            reweighted: 0,
+            candidates: 0,
+            changed: 0,
+            similarity: 0.0,
+            pixel_accuracy: None,
+            growth,
+            trial_kept,
+            grown_z,
+        }
+    }
+
+    #[test]
+    fn a_trial_end_belongs_to_the_round_before_it() {
+        let sweeps = [
+            sweep(3, false, None, None),
+            // A round with no trial (below the floor), then one whose trial is kept.
+            sweep(4, true, None, Some(-12.0)),
+            sweep(5, true, None, Some(-4.0)),
+            sweep(6, false, None, None),
+            sweep(7, true, Some(true), None),
+            // A round whose trial the run's end cut short.
+            sweep(8, true, None, Some(-6.0)),
+        ];
+        let round = |sweep, grown_z, trial_kept| GrowthRound {
+            sweep,
+            grown_z: Some(grown_z),
+            trial_kept,
+        };
+        assert_eq!(
+            growth_rounds(&sweeps),
+            vec![
+                round(4, -12.0, None),
+                round(5, -4.0, Some(true)),
+                round(8, -6.0, None)
+            ]
+        );
+        assert!(growth_rounds(&sweeps[..1]).is_empty());
+    }
 }
