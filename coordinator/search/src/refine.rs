@@ -108,7 +108,9 @@ pub struct RefineConfig {
     /// Where the stage would end (before it escalates), a **growth** round first: each small
     /// object (a connected region of at most [`GROWTH_MAX_PIXELS`] pixels, not of the
     /// background) grown by its 8-connected neighbours and set wholly to each candidate
-    /// material other than the background, each grown map rendered on its own at a
+    /// material other than the background, and (an object of two pixels or more) its bounding
+    /// box grown by one row or column on each side in turn and filled with its material (an
+    /// object found with a corner or a side missing), each grown map rendered on its own at a
     /// [`GROWTH_FRACTION`]th of the sweep's photons. A small object of a strong material can
     /// stand in for a larger one of a weaker material (one opaque pixel for a 3 × 2 block of
     /// `uniform` on fig7f): no single pixel then improves the map, and the recolour of the
@@ -339,6 +341,37 @@ pub struct SweepRecord {
     /// current map (on the round's renders), whether or not it was tried.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub grown_z: Option<f64>,
+}
+
+/// The bounding box of `pixels` (indices of an `n × n` grid) grown by one row or column on
+/// each side in turn, where the grid has room: up, down, left, right, each as its pixels in
+/// order.
+fn grown_boxes(pixels: &[usize], n: usize) -> Vec<Vec<usize>> {
+    let (Some(y0), Some(y1)) = (
+        pixels.iter().map(|p| p / n).min(),
+        pixels.iter().map(|p| p / n).max(),
+    ) else {
+        return Vec::new();
+    };
+    let (x0, x1) = (
+        pixels.iter().map(|p| p % n).min().unwrap_or(0),
+        pixels.iter().map(|p| p % n).max().unwrap_or(0),
+    );
+    let boxes = [
+        (y0 > 0).then(|| (y0 - 1, y1, x0, x1)),
+        (y1 + 1 < n).then(|| (y0, y1 + 1, x0, x1)),
+        (x0 > 0).then(|| (y0, y1, x0 - 1, x1)),
+        (x1 + 1 < n).then(|| (y0, y1, x0, x1 + 1)),
+    ];
+    boxes
+        .into_iter()
+        .flatten()
+        .map(|(ya, yb, xa, xb)| {
+            (ya..=yb)
+                .flat_map(|y| (xa..=xb).map(move |x| y * n + x))
+                .collect()
+        })
+        .collect()
 }
 
 /// The filled base of a map ([`Refinement::filled_base`]): the map rendered, and the change
@@ -1051,8 +1084,9 @@ impl Refinement {
 
     /// A growth round's changes: each object of at most [`GROWTH_MAX_PIXELS`] pixels not of
     /// the background, with its 8-connected neighbours, set wholly to each candidate material
-    /// other than the background (where two pixels or more change); objects in the order of
-    /// their first pixel.
+    /// other than the background, then (an object of two pixels or more) its bounding box
+    /// grown by each side in turn ([`grown_boxes`]) filled with its material; where two pixels
+    /// or more change, objects in the order of their first pixel.
     fn growths_of_current(&self) -> Vec<Change> {
         let n = self.grid as i64;
         let background = self.background();
@@ -1085,6 +1119,21 @@ impl Refinement {
                     .collect();
                 if pixels.len() >= 2 && seen.insert(pixels.clone()) {
                     out.push(Change { pixels });
+                }
+            }
+            if pixels.len() >= 2 {
+                // An object found with a corner or a side missing (an L of three pixels where
+                // a 3 × 2 block is): its bounding box grown by one row or column on each side
+                // in turn, filled with its material.
+                for rectangle in grown_boxes(&pixels, self.grid as usize) {
+                    let pixels: Vec<(u32, u16)> = rectangle
+                        .into_iter()
+                        .filter(|&p| self.current[p] != m)
+                        .map(|p| (p as u32, m))
+                        .collect();
+                    if pixels.len() >= 2 && seen.insert(pixels.clone()) {
+                        out.push(Change { pixels });
+                    }
                 }
             }
         }
@@ -2326,6 +2375,47 @@ mod tests {
                 vec![(6, 0)],
             ]
         );
+    }
+
+    #[test]
+    fn a_growth_round_fills_an_objects_box_grown_by_each_side() {
+        // An L of three pixels (5, 10, 11) in a 5 × 5 map: a 2 × 2 block (rows 1–2, columns
+        // 0–1) with its top-right corner missing.
+        let mut start = vec![0u16; 25];
+        for p in [5, 10, 11] {
+            start[p] = 1;
+        }
+        let r = Refinement::new(
+            RefineConfig {
+                grow_objects: true,
+                ..config()
+            },
+            5,
+            vec![0, 1],
+            1,
+            start,
+            Vec::new(),
+            Vec::new(),
+        );
+        let grown: Vec<Vec<(u32, u16)>> = r
+            .growths_of_current()
+            .into_iter()
+            .map(|c| c.pixels)
+            .collect();
+        let set = |pixels: &[u32]| pixels.iter().map(|&p| (p, 1)).collect::<Vec<_>>();
+        // The L with its 8-connected neighbours, then its box grown up, down and right,
+        // filled (the missing corner, 6, with each); nothing lies left of column 0.
+        assert_eq!(
+            grown,
+            vec![
+                set(&[0, 1, 6, 7, 12, 15, 16, 17]),
+                set(&[0, 1, 6]),
+                set(&[6, 15, 16]),
+                set(&[6, 7, 12]),
+            ]
+        );
+        // A corner pixel's box grows only down and right.
+        assert_eq!(grown_boxes(&[0], 5), vec![vec![0, 5], vec![0, 1]]);
     }
 
     #[test]
