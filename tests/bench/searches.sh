@@ -13,7 +13,8 @@
 #   simplify  simplification rounds at 1 paired standard error where the stage would end;
 #   grow      growth rounds where the stage would end: small objects grown by their neighbours
 #             and recoloured, each rendered on its own, the best tried when none wins
-#             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON);
+#             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON; before
+#             the filled bounding boxes: tags trial and trialz; with them: tag rect);
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
 #             the one-material map); coarseauto: cut after level 0 where its material
 #             scatters (`coarse_levels = "auto"`).

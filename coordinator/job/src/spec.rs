@@ -151,8 +151,8 @@ pub struct JobSpec {
     /// standard errors (likelihood: off).
     pub refine_simplify_z: Option<f64>,
     /// Where refinement would end, a growth round first: each object of at most four pixels
-    /// grown by its neighbours and set wholly to each other material, each rendered on its
-    /// own (likelihood: false).
+    /// grown by its neighbours and set wholly to each other material, and its bounding box
+    /// grown by each side in turn and filled, each rendered on its own (likelihood: false).
     pub refine_grow: Option<bool>,
     /// A growth round whose grown maps all lose tries its best only where that map's paired z
     /// against the current map is above this (likelihood: every such round tries it).

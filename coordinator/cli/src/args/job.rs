@@ -189,8 +189,9 @@ pub struct JobArgs {
     pub refine_simplify_z: Option<f64>,
     /// Where refinement would end (before it escalates), a growth round first: each object
     /// of at most four pixels, not of the background, grown by its 8-connected neighbours and
-    /// set wholly to each other candidate material, each grown map rendered on its own at a
-    /// quarter of the sweep's photons: a small object of a strong material standing in for a
+    /// set wholly to each other candidate material, and its bounding box grown by one row or
+    /// column on each side in turn and filled with its material, each grown map rendered on
+    /// its own at a quarter of the sweep's photons: a small object of a strong material standing in for a
     /// larger one of a weaker material is then one change; sweeps go on from what it
     /// changes (likelihood: false).
     #[arg(long, value_name = "BOOL")]
