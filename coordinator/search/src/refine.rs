@@ -343,20 +343,26 @@ pub struct SweepRecord {
     pub grown_z: Option<f64>,
 }
 
+/// The rows and columns `pixels` (indices of an `n × n` grid) span: first row, last row,
+/// first column, last column; `None` for no pixels.
+fn bounding_box(pixels: &[usize], n: usize) -> Option<(usize, usize, usize, usize)> {
+    let rows = pixels.iter().map(|p| p / n);
+    let columns = pixels.iter().map(|p| p % n);
+    Some((
+        rows.clone().min()?,
+        rows.max()?,
+        columns.clone().min()?,
+        columns.max()?,
+    ))
+}
+
 /// The bounding box of `pixels` (indices of an `n × n` grid) grown by one row or column on
 /// each side in turn, where the grid has room: up, down, left, right, each as its pixels in
 /// order.
 fn grown_boxes(pixels: &[usize], n: usize) -> Vec<Vec<usize>> {
-    let (Some(y0), Some(y1)) = (
-        pixels.iter().map(|p| p / n).min(),
-        pixels.iter().map(|p| p / n).max(),
-    ) else {
+    let Some((y0, y1, x0, x1)) = bounding_box(pixels, n) else {
         return Vec::new();
     };
-    let (x0, x1) = (
-        pixels.iter().map(|p| p % n).min().unwrap_or(0),
-        pixels.iter().map(|p| p % n).max().unwrap_or(0),
-    );
     let boxes = [
         (y0 > 0).then(|| (y0 - 1, y1, x0, x1)),
         (y1 + 1 < n).then(|| (y0, y1 + 1, x0, x1)),
@@ -1189,10 +1195,9 @@ impl Refinement {
             if m == background || pixels.len() * 2 > self.current.len() {
                 continue;
             }
-            let ys = pixels.iter().map(|&p| p / n);
-            let xs = pixels.iter().map(|&p| p % n);
-            let (y0, y1) = (ys.clone().min().unwrap_or(0), ys.max().unwrap_or(0));
-            let (x0, x1) = (xs.clone().min().unwrap_or(0), xs.max().unwrap_or(0));
+            let Some((y0, y1, x0, x1)) = bounding_box(&pixels, n) else {
+                continue;
+            };
             let row = |y: usize| (x0..=x1).map(move |x| y * n + x).collect::<Vec<_>>();
             let column = |x: usize| (y0..=y1).map(move |y| y * n + x).collect::<Vec<_>>();
             let mut grow = Vec::new();
@@ -2349,17 +2354,13 @@ mod tests {
         let mut start = vec![0u16; 16];
         start[5] = 1;
         start[6] = 1;
-        let r = Refinement::new(
+        let r = two_materials(
             RefineConfig {
                 blocks: true,
                 ..config()
             },
             4,
-            vec![0, 1],
-            1,
             start,
-            Vec::new(),
-            Vec::new(),
         );
         let sides: Vec<Vec<(u32, u16)>> = r.object_sides().into_iter().map(|c| c.pixels).collect();
         // Grown up, down, left and right; shrunk from the left and the right (shrinking its
@@ -2385,17 +2386,13 @@ mod tests {
         for p in [5, 10, 11] {
             start[p] = 1;
         }
-        let r = Refinement::new(
+        let r = two_materials(
             RefineConfig {
                 grow_objects: true,
                 ..config()
             },
             5,
-            vec![0, 1],
-            1,
             start,
-            Vec::new(),
-            Vec::new(),
         );
         let grown: Vec<Vec<(u32, u16)>> = r
             .growths_of_current()
