@@ -15,6 +15,8 @@
 #             and recoloured, each rendered on its own, the best tried when none wins
 #             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON; before
 #             the filled bounding boxes: tags trial and trialz; with them: tag rect);
+#   notrial   no growth trials: a growth round's best grown map is tried only above a paired
+#             z of 1e9 (refine_grow_trial_z), so only rounds that win change the map;
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
 #             the one-material map); coarseauto: cut after level 0 where its material
 #             scatters (`coarse_levels = "auto"`).
@@ -45,8 +47,9 @@ search_flags() {
           blocks) flags+=(--set refine_blocks=true) ;;
           simplify) flags+=(--set refine_simplify_z=1) ;;
           grow) flags+=(--set refine_grow=true) ;;
+          notrial) flags+=(--set refine_grow_trial_z=1e9) ;;
           coarse[1-9] | coarseauto) flags+=(--set "coarse_levels=${part#coarse}") ;;
-          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, grow, coarseN, coarseauto)" >&2
+          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, grow, notrial, coarseN, coarseauto)" >&2
              return 1 ;;
         esac
       done ;;
