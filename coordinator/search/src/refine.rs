@@ -2411,10 +2411,12 @@ mod tests {
         );
     }
 
-    /// The changes of a growth round in a 5 × 5 map of two materials, material 1 at `pixels`.
-    fn growths_in_five_by_five(pixels: &[usize]) -> Vec<Vec<(u32, u16)>> {
+    #[test]
+    fn a_growth_round_fills_an_objects_box_grown_by_each_side() {
+        // An L of three pixels (5, 10, 11) in a 5 × 5 map: a 2 × 2 block (rows 1–2, columns
+        // 0–1) with its top-right corner missing.
         let mut start = vec![0u16; 25];
-        for &p in pixels {
+        for p in [5, 10, 11] {
             start[p] = 1;
         }
         let r = two_materials(
@@ -2425,22 +2427,12 @@ mod tests {
             5,
             start,
         );
-        r.growths_of_current()
+        let grown: Vec<Vec<(u32, u16)>> = r
+            .growths_of_current()
             .into_iter()
             .map(|c| c.pixels)
-            .collect()
-    }
-
-    /// Each of `pixels` set to material 1.
-    fn set(pixels: &[u32]) -> Vec<(u32, u16)> {
-        pixels.iter().map(|&p| (p, 1)).collect()
-    }
-
-    #[test]
-    fn a_growth_round_fills_an_objects_box_grown_by_each_side() {
-        // An L of three pixels (5, 10, 11) in a 5 × 5 map: a 2 × 2 block (rows 1–2, columns
-        // 0–1) with its top-right corner missing.
-        let grown = growths_in_five_by_five(&[5, 10, 11]);
+            .collect();
+        let set = |pixels: &[u32]| pixels.iter().map(|&p| (p, 1)).collect::<Vec<_>>();
         // The L with its 8-connected neighbours, then its box grown up, down and right,
         // filled (the missing corner, 6, with each); nothing lies left of column 0, and its
         // box alone changes one pixel (a sweep's change, not a growth's).
@@ -2463,7 +2455,24 @@ mod tests {
     fn a_growth_round_fills_the_box_of_pixels_touching_at_their_corners() {
         // Two diagonal pixels (6 and 12) in a 5 × 5 map: a 2 × 2 block (rows 1–2, columns
         // 1–2) found as its diagonal. Each is a 4-connected object of one pixel: no box.
-        let grown = growths_in_five_by_five(&[6, 12]);
+        let mut start = vec![0u16; 25];
+        for p in [6, 12] {
+            start[p] = 1;
+        }
+        let r = two_materials(
+            RefineConfig {
+                grow_objects: true,
+                ..config()
+            },
+            5,
+            start,
+        );
+        let grown: Vec<Vec<(u32, u16)>> = r
+            .growths_of_current()
+            .into_iter()
+            .map(|c| c.pixels)
+            .collect();
+        let set = |pixels: &[u32]| pixels.iter().map(|&p| (p, 1)).collect::<Vec<_>>();
         assert_eq!(
             grown,
             vec![
