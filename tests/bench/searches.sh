@@ -14,8 +14,7 @@
 #   grow      growth rounds where the stage would end: small objects grown by their neighbours
 #             and recoloured, each rendered on its own, the best tried when none wins
 #             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON; before
-#             the filled bounding boxes: tags trial and trialz; with them: tag rect; with
-#             the boxes of objects up to 9 pixels, 8-connected ones and the box itself: tag box9);
+#             the filled bounding boxes: tags trial and trialz; with them: tag rect);
 #   notrial   no growth trials: a growth round's best grown map is tried only above a paired
 #             z of 1e9 (refine_grow_trial_z), so only rounds that win change the map;
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from

@@ -108,11 +108,10 @@ pub struct RefineConfig {
     /// Where the stage would end (before it escalates), a **growth** round first: each small
     /// object (a connected region of at most [`GROWTH_MAX_PIXELS`] pixels, not of the
     /// background) grown by its 8-connected neighbours and set wholly to each candidate
-    /// material other than the background, and (an object of 2 to [`BOX_MAX_PIXELS`] pixels,
-    /// 4- or 8-connected) its bounding box, and that box grown by one row or column on each
-    /// side in turn, filled with its material (an object found with a corner, a side or its
-    /// middle missing, or as pixels touching at their corners), each grown map rendered on its
-    /// own at a [`GROWTH_FRACTION`]th of the sweep's photons. A small object of a strong material can
+    /// material other than the background, and (an object of two pixels or more) its bounding
+    /// box grown by one row or column on each side in turn and filled with its material (an
+    /// object found with a corner or a side missing), each grown map rendered on its own at a
+    /// [`GROWTH_FRACTION`]th of the sweep's photons. A small object of a strong material can
     /// stand in for a larger one of a weaker material (one opaque pixel for a 3 × 2 block of
     /// `uniform` on fig7f): no single pixel then improves the map, and the recolour of the
     /// grown object is too noisy for a differential render to estimate. A round that changes
@@ -141,27 +140,6 @@ pub const MAX_GROWTHS: u32 = 4;
 
 /// A growth round grows the objects of at most this many pixels.
 pub const GROWTH_MAX_PIXELS: usize = 4;
-
-/// A growth round fills the boxes of the objects of at most this many pixels.
-pub const BOX_MAX_PIXELS: usize = 9;
-
-/// A growth round fills no box of more than this many pixels (a 4 × 4 box, or 3 × 5).
-pub const BOX_MAX_AREA: usize = 16;
-
-/// The neighbours of a pixel that share a side with it, as (row, column) steps.
-const FOUR_CONNECTED: [(i64, i64); 4] = [(-1, 0), (1, 0), (0, -1), (0, 1)];
-
-/// The neighbours of a pixel that share a side or a corner with it, as (row, column) steps.
-const EIGHT_CONNECTED: [(i64, i64); 8] = [
-    (-1, -1),
-    (-1, 0),
-    (-1, 1),
-    (0, -1),
-    (0, 1),
-    (1, -1),
-    (1, 0),
-    (1, 1),
-];
 
 /// A growth round's renders take this fraction of the sweep's photons (escalated): each is a
 /// render of its own, and the changes it looks for move the counts as a whole object does.
@@ -378,15 +356,14 @@ fn bounding_box(pixels: &[usize], n: usize) -> Option<(usize, usize, usize, usiz
     ))
 }
 
-/// The bounding box of `pixels` (indices of an `n × n` grid), then that box grown by one row
-/// or column on each side in turn where the grid has room (up, down, left, right), each of at
-/// most [`BOX_MAX_AREA`] pixels, each as its pixels in order.
-fn object_boxes(pixels: &[usize], n: usize) -> Vec<Vec<usize>> {
+/// The bounding box of `pixels` (indices of an `n × n` grid) grown by one row or column on
+/// each side in turn, where the grid has room: up, down, left, right, each as its pixels in
+/// order.
+fn grown_boxes(pixels: &[usize], n: usize) -> Vec<Vec<usize>> {
     let Some((y0, y1, x0, x1)) = bounding_box(pixels, n) else {
         return Vec::new();
     };
     let boxes = [
-        Some((y0, y1, x0, x1)),
         (y0 > 0).then(|| (y0 - 1, y1, x0, x1)),
         (y1 + 1 < n).then(|| (y0, y1 + 1, x0, x1)),
         (x0 > 0).then(|| (y0, y1, x0 - 1, x1)),
@@ -395,7 +372,6 @@ fn object_boxes(pixels: &[usize], n: usize) -> Vec<Vec<usize>> {
     boxes
         .into_iter()
         .flatten()
-        .filter(|(ya, yb, xa, xb)| (yb - ya + 1) * (xb - xa + 1) <= BOX_MAX_AREA)
         .map(|(ya, yb, xa, xb)| {
             (ya..=yb)
                 .flat_map(|y| (xa..=xb).map(move |x| y * n + x))
@@ -1102,7 +1078,7 @@ impl Refinement {
                 pixels: vec![(p as u32, background)],
             })
             .collect();
-        for (m, pixels) in self.regions(&FOUR_CONNECTED) {
+        for (m, pixels) in self.regions() {
             if m != background && pixels.len() >= 2 {
                 out.push(Change {
                     pixels: pixels.iter().map(|&p| (p as u32, background)).collect(),
@@ -1114,22 +1090,20 @@ impl Refinement {
 
     /// A growth round's changes: each object of at most [`GROWTH_MAX_PIXELS`] pixels not of
     /// the background, with its 8-connected neighbours, set wholly to each candidate material
-    /// other than the background; then each object of 2 to [`BOX_MAX_PIXELS`] pixels not of
-    /// the background, 4-connected and then 8-connected, its bounding box and that box grown
-    /// by each side in turn ([`object_boxes`]) filled with its material; where two pixels or
-    /// more change, objects in the order of their first pixel, no change twice.
+    /// other than the background, then (an object of two pixels or more) its bounding box
+    /// grown by each side in turn ([`grown_boxes`]) filled with its material; where two pixels
+    /// or more change, objects in the order of their first pixel.
     fn growths_of_current(&self) -> Vec<Change> {
         let n = self.grid as i64;
         let background = self.background();
         let mut out = Vec::new();
         let mut seen = BTreeSet::new();
-        let regions = self.regions(&FOUR_CONNECTED);
-        for (m, pixels) in &regions {
-            if *m == background || pixels.len() > GROWTH_MAX_PIXELS {
+        for (m, pixels) in self.regions() {
+            if m == background || pixels.len() > GROWTH_MAX_PIXELS {
                 continue;
             }
             let mut grown: BTreeSet<usize> = BTreeSet::new();
-            for &p in pixels {
+            for &p in &pixels {
                 let (y, x) = (p as i64 / n, p as i64 % n);
                 for dy in -1..=1 {
                     for dx in -1..=1 {
@@ -1153,25 +1127,19 @@ impl Refinement {
                     out.push(Change { pixels });
                 }
             }
-        }
-        // An object found with a corner, a side or its middle missing (an L of three pixels
-        // where a 3 × 2 block is, a 3 × 3 block with its middle and a corner missing), or as
-        // pixels touching at their corners (two diagonal pixels where a 2 × 2 block is): its
-        // bounding box, and that box grown by one row or column on each side in turn, filled
-        // with its material.
-        let objects = regions
-            .into_iter()
-            .chain(self.regions(&EIGHT_CONNECTED))
-            .filter(|(m, pixels)| *m != background && (2..=BOX_MAX_PIXELS).contains(&pixels.len()));
-        for (m, pixels) in objects {
-            for rectangle in object_boxes(&pixels, self.grid as usize) {
-                let pixels: Vec<(u32, u16)> = rectangle
-                    .into_iter()
-                    .filter(|&p| self.current[p] != m)
-                    .map(|p| (p as u32, m))
-                    .collect();
-                if pixels.len() >= 2 && seen.insert(pixels.clone()) {
-                    out.push(Change { pixels });
+            if pixels.len() >= 2 {
+                // An object found with a corner or a side missing (an L of three pixels where
+                // a 3 × 2 block is): its bounding box grown by one row or column on each side
+                // in turn, filled with its material.
+                for rectangle in grown_boxes(&pixels, self.grid as usize) {
+                    let pixels: Vec<(u32, u16)> = rectangle
+                        .into_iter()
+                        .filter(|&p| self.current[p] != m)
+                        .map(|p| (p as u32, m))
+                        .collect();
+                    if pixels.len() >= 2 && seen.insert(pixels.clone()) {
+                        out.push(Change { pixels });
+                    }
                 }
             }
         }
@@ -1223,7 +1191,7 @@ impl Refinement {
         let n = self.grid as usize;
         let background = self.background();
         let mut out = Vec::new();
-        for (m, pixels) in self.regions(&FOUR_CONNECTED) {
+        for (m, pixels) in self.regions() {
             if m == background || pixels.len() * 2 > self.current.len() {
                 continue;
             }
@@ -1298,7 +1266,7 @@ impl Refinement {
     /// other candidate material.
     fn recolours(&self) -> Vec<Change> {
         let mut out = Vec::new();
-        for (m, pixels) in self.regions(&FOUR_CONNECTED) {
+        for (m, pixels) in self.regions() {
             if pixels.len() < 2 {
                 continue;
             }
@@ -1313,10 +1281,9 @@ impl Refinement {
         out
     }
 
-    /// The map's connected regions of one material ([`FOUR_CONNECTED`] or
-    /// [`EIGHT_CONNECTED`]), each with its pixels in order, the regions in the order of their
-    /// first pixel.
-    fn regions(&self, neighbours: &[(i64, i64)]) -> Vec<(u16, Vec<usize>)> {
+    /// The map's 4-connected regions of one material, each with its pixels in order, the
+    /// regions in the order of their first pixel.
+    fn regions(&self) -> Vec<(u16, Vec<usize>)> {
         let n = self.grid as i64;
         let mut label = vec![usize::MAX; self.current.len()];
         let mut regions: Vec<(u16, Vec<usize>)> = Vec::new();
@@ -1332,7 +1299,7 @@ impl Refinement {
             while let Some(p) = stack.pop() {
                 pixels.push(p);
                 let (y, x) = (p as i64 / n, p as i64 % n);
-                for &(dy, dx) in neighbours {
+                for (dy, dx) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
                     let (yy, xx) = (y + dy, x + dx);
                     if yy < 0 || yy >= n || xx < 0 || xx >= n {
                         continue;
@@ -1370,7 +1337,7 @@ impl Refinement {
         let n = self.grid as i64;
         let background = self.background();
         let objects: Vec<(u16, Vec<usize>)> = self
-            .regions(&FOUR_CONNECTED)
+            .regions()
             .into_iter()
             .filter(|(m, _)| *m != background)
             .collect();
@@ -2434,8 +2401,7 @@ mod tests {
             .collect();
         let set = |pixels: &[u32]| pixels.iter().map(|&p| (p, 1)).collect::<Vec<_>>();
         // The L with its 8-connected neighbours, then its box grown up, down and right,
-        // filled (the missing corner, 6, with each); nothing lies left of column 0, and its
-        // box alone changes one pixel (a sweep's change, not a growth's).
+        // filled (the missing corner, 6, with each); nothing lies left of column 0.
         assert_eq!(
             grown,
             vec![
@@ -2445,48 +2411,8 @@ mod tests {
                 set(&[6, 7, 12]),
             ]
         );
-        // A corner pixel's box is itself, grown only down and right.
-        assert_eq!(object_boxes(&[0], 5), vec![vec![0], vec![0, 5], vec![0, 1]]);
-        // A diagonal of five pixels spans a 5 × 5 box: above BOX_MAX_AREA, none is filled.
-        assert!(object_boxes(&[0, 7, 14, 21, 28], 6).is_empty());
-    }
-
-    #[test]
-    fn a_growth_round_fills_the_box_of_pixels_touching_at_their_corners() {
-        // Two diagonal pixels (6 and 12) in a 5 × 5 map: a 2 × 2 block (rows 1–2, columns
-        // 1–2) found as its diagonal. Each is a 4-connected object of one pixel: no box.
-        let mut start = vec![0u16; 25];
-        for p in [6, 12] {
-            start[p] = 1;
-        }
-        let r = two_materials(
-            RefineConfig {
-                grow_objects: true,
-                ..config()
-            },
-            5,
-            start,
-        );
-        let grown: Vec<Vec<(u32, u16)>> = r
-            .growths_of_current()
-            .into_iter()
-            .map(|c| c.pixels)
-            .collect();
-        let set = |pixels: &[u32]| pixels.iter().map(|&p| (p, 1)).collect::<Vec<_>>();
-        assert_eq!(
-            grown,
-            vec![
-                // Each pixel with its 8-connected neighbours (the other already of it).
-                set(&[0, 1, 2, 5, 7, 10, 11]),
-                set(&[7, 8, 11, 13, 16, 17, 18]),
-                // The 8-connected pair: its box filled, then grown up, down, left, right.
-                set(&[7, 11]),
-                set(&[1, 2, 7, 11]),
-                set(&[7, 11, 16, 17]),
-                set(&[5, 7, 10, 11]),
-                set(&[7, 8, 11, 13]),
-            ]
-        );
+        // A corner pixel's box grows only down and right.
+        assert_eq!(grown_boxes(&[0], 5), vec![vec![0, 5], vec![0, 1]]);
     }
 
     #[test]
