@@ -19,7 +19,7 @@ pub enum CoarseLevels {
     /// Levels `0 … n−1`; the refinement (or the result) starts from level `n−1`'s map.
     Count(u32),
     /// Level 0 only where the refinement can build the objects itself from its one-material
-    /// map ([`refines_from_level_zero`]), else every level.
+    /// map (`refines_from_level_zero`), else every level.
     Auto,
 }
 
