@@ -47,9 +47,10 @@ search_flags() {
           blocks) flags+=(--set refine_blocks=true) ;;
           simplify) flags+=(--set refine_simplify_z=1) ;;
           grow) flags+=(--set refine_grow=true) ;;
+          nogrow) flags+=(--set refine_grow=false) ;;
           notrial) flags+=(--set refine_grow_trial_z=1e9) ;;
           coarse[1-9] | coarseauto) flags+=(--set "coarse_levels=${part#coarse}") ;;
-          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, grow, notrial, coarseN, coarseauto)" >&2
+          *) echo "searches.sh: unknown part '$part' of $1 (z2, swaps, blocks, simplify, grow, nogrow, notrial, coarseN, coarseauto)" >&2
              return 1 ;;
         esac
       done ;;

@@ -5,6 +5,7 @@
 
 use crate::options::{SearchMode, TiebreakMetric};
 use anyhow::{Context, Result};
+use scatterfarm_search::refine::Growth;
 use scatterfarm_search::similarity::Metric;
 use scatterfarm_search::CoarseLevels;
 use serde::{Deserialize, Serialize};
@@ -152,8 +153,9 @@ pub struct JobSpec {
     pub refine_simplify_z: Option<f64>,
     /// Where refinement would end, a growth round first: each object of at most four pixels
     /// grown by its neighbours and set wholly to each other material, and its bounding box
-    /// grown by each side in turn and filled, each rendered on its own (likelihood: false).
-    pub refine_grow: Option<bool>,
+    /// grown by each side in turn and filled, each rendered on its own: `true`, `false`, or
+    /// `"auto"`, only where the refinement starts from a one-material map (likelihood: auto).
+    pub refine_grow: Option<Growth>,
     /// A growth round whose grown maps all lose tries its best only where that map's paired z
     /// against the current map is above this (likelihood: every such round tries it).
     pub refine_grow_trial_z: Option<f64>,

@@ -193,9 +193,11 @@ pub struct JobArgs {
     /// column on each side in turn and filled with its material, each grown map rendered on
     /// its own at a quarter of the sweep's photons: a small object of a strong material standing in for a
     /// larger one of a weaker material is then one change; sweeps go on from what it
-    /// changes (likelihood: false).
-    #[arg(long, value_name = "BOOL")]
-    pub refine_grow: Option<bool>,
+    /// changes. auto: only where the refinement starts from a one-material map (level 0's,
+    /// where --coarse-levels auto stops there), not where the quad-tree levels built the
+    /// objects (likelihood: auto).
+    #[arg(long, value_name = "true|false|auto")]
+    pub refine_grow: Option<scatterfarm_search::refine::Growth>,
     /// A growth round in which no grown map wins tries the best of them (the sweeps go on
     /// from it, and the map they reach is kept only if it beats the round's start) only where
     /// that map's paired z against the current map is above Z (likelihood: every such round

@@ -780,7 +780,7 @@ fn small_refinement(screen: crate::refine::Screen) -> RefineConfig {
         swap_pixels: false,
         blocks: false,
         simplify_z: None,
-        grow_objects: false,
+        grow_objects: crate::refine::Growth::Off,
         grow_trial_z: None,
     }
 }

@@ -2,6 +2,8 @@
 //! limits the stage keeps to, and the configuration's checks.
 
 use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
 
 /// What fixes a refinement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -99,14 +101,116 @@ pub struct RefineConfig {
     /// beats the start by `z` paired standard errors, else the start comes back and the stage
     /// goes on as without the round. A grown map that fits worse than the stand-in (it grew
     /// into pixels the object lacks) can so still lead to the object. [`MAX_GROWTHS`] rounds
-    /// at most, and none twice on one map.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub grow_objects: bool,
+    /// at most, and none twice on one map. [`Growth::Auto`] runs them only where the stage
+    /// starts from a one-material map; the stage resolves it when it starts.
+    #[serde(default, skip_serializing_if = "Growth::is_off")]
+    pub grow_objects: Growth,
     /// A growth round's best grown map is tried (`Trial`) only where its paired z against
     /// the current map is above this; below it, the round ends as one without a trial. `None`:
     /// every round whose grown maps all lose runs a trial.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub grow_trial_z: Option<f64>,
+}
+
+/// Whether a refinement runs growth rounds ([`RefineConfig::grow_objects`]).
+///
+/// Stored as a boolean (`On`, `Off`) or the string `"auto"`, so a checkpoint or job record
+/// written when growth was a boolean reads back unchanged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(try_from = "GrowthRepr", into = "GrowthRepr")]
+pub enum Growth {
+    /// No growth rounds.
+    #[default]
+    Off,
+    /// Growth rounds wherever the stage would end.
+    On,
+    /// Growth rounds where the stage starts from a one-material map (level 0's, as
+    /// `coarse_levels = auto` leaves it on moderate backgrounds: the sweeps then build every
+    /// object from single pixels, and a small object standing in for a larger one is the
+    /// failure growth mends); none where the quad-tree levels built the objects. Resolved to
+    /// `On` or `Off` when the stage starts ([`Growth::resolve`]).
+    Auto,
+}
+
+impl Growth {
+    /// `On` or `Off` for a stage that starts from `start`: [`Growth::Auto`] is `On` where
+    /// every pixel of `start` is one material.
+    pub fn resolve(self, start: &[u16]) -> Growth {
+        match self {
+            Growth::Auto => match start.split_first() {
+                Some((first, rest)) if rest.iter().all(|m| m == first) => Growth::On,
+                _ => Growth::Off,
+            },
+            fixed => fixed,
+        }
+    }
+
+    /// Whether this (resolved) setting runs growth rounds; an unresolved `Auto` does not.
+    pub fn is_on(self) -> bool {
+        self == Growth::On
+    }
+
+    fn is_off(&self) -> bool {
+        *self == Growth::Off
+    }
+}
+
+impl fmt::Display for Growth {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Growth::Off => "false",
+            Growth::On => "true",
+            Growth::Auto => "auto",
+        })
+    }
+}
+
+/// Why a spelling is not a [`Growth`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("expected true, false or \"auto\", got {0:?}")]
+pub struct ParseGrowthError(String);
+
+impl FromStr for Growth {
+    type Err = ParseGrowthError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim() {
+            "true" | "on" => Ok(Growth::On),
+            "false" | "off" => Ok(Growth::Off),
+            "auto" => Ok(Growth::Auto),
+            _ => Err(ParseGrowthError(s.to_string())),
+        }
+    }
+}
+
+/// The stored form of a [`Growth`]: a boolean or a word.
+#[derive(Serialize, Deserialize)]
+#[serde(untagged)]
+enum GrowthRepr {
+    Flag(bool),
+    Word(String),
+}
+
+impl TryFrom<GrowthRepr> for Growth {
+    type Error = ParseGrowthError;
+
+    fn try_from(r: GrowthRepr) -> Result<Self, Self::Error> {
+        match r {
+            GrowthRepr::Flag(true) => Ok(Growth::On),
+            GrowthRepr::Flag(false) => Ok(Growth::Off),
+            GrowthRepr::Word(w) => w.parse(),
+        }
+    }
+}
+
+impl From<Growth> for GrowthRepr {
+    fn from(g: Growth) -> GrowthRepr {
+        match g {
+            Growth::On => GrowthRepr::Flag(true),
+            Growth::Off => GrowthRepr::Flag(false),
+            Growth::Auto => GrowthRepr::Word("auto".into()),
+        }
+    }
 }
 
 /// The most simplification rounds one refinement runs ([`RefineConfig::simplify_z`]).

@@ -42,8 +42,8 @@ use std::collections::BTreeSet;
 
 use config::is_zero;
 pub use config::{
-    RefineConfig, Screen, GROWTH_FRACTION, GROWTH_MAX_PIXELS, MAX_GROWTHS, MAX_SIMPLIFICATIONS,
-    MAX_SPREAD,
+    Growth, ParseGrowthError, RefineConfig, Screen, GROWTH_FRACTION, GROWTH_MAX_PIXELS,
+    MAX_GROWTHS, MAX_SIMPLIFICATIONS, MAX_SPREAD,
 };
 use reweight::Base;
 use trial::Trial;
@@ -261,10 +261,11 @@ impl Refinement {
 
     /// [`Refinement::new`], knowing how noisy each material change's photon weights are
     /// (`spread[i][j]`, `model::differential::weight_spread`): a differential sweep leaves out
-    /// the recolours noisier than [`MAX_SPREAD`].
+    /// the recolours noisier than [`MAX_SPREAD`]. A [`Growth::Auto`] setting is resolved here,
+    /// from `start`.
     #[allow(clippy::too_many_arguments)]
     pub fn with_spread(
-        config: RefineConfig,
+        mut config: RefineConfig,
         grid: u32,
         materials: Vec<u16>,
         job_seed: u64,
@@ -273,6 +274,7 @@ impl Refinement {
         opaque: Vec<bool>,
         spread: Vec<Vec<f64>>,
     ) -> Refinement {
+        config.grow_objects = config.grow_objects.resolve(&start);
         let mut r = Refinement {
             config,
             grid,
@@ -541,7 +543,7 @@ impl Refinement {
             && self.simplifications < MAX_SIMPLIFICATIONS
             && self.sweep + 1 < self.config.max_sweeps
             && self.simplified.as_ref() != Some(&self.current);
-        let may_grow = self.config.grow_objects
+        let may_grow = self.config.grow_objects.is_on()
             && self.growths < MAX_GROWTHS
             && self.sweep + 1 < self.config.max_sweeps
             && self.grown.as_ref() != Some(&self.current)

@@ -26,7 +26,7 @@ fn config() -> RefineConfig {
         swap_pixels: false,
         blocks: false,
         simplify_z: None,
-        grow_objects: false,
+        grow_objects: Growth::Off,
         grow_trial_z: None,
     }
 }
@@ -150,12 +150,12 @@ fn growth_rounds_replace_a_strong_pixel_standing_in_for_a_weak_block() {
     let start = stand_in_start();
     let run = |grow_objects| run_stand_in(0.2, grow_objects, 12, &mut |_| {});
     // Without growth rounds the start is where the stage ends.
-    let kept = run(false);
+    let kept = run(Growth::Off);
     assert_eq!(kept.current().0, &start[..]);
     assert!(kept.history().iter().all(|h| !h.growth));
     // With them, the strong pixel's neighbourhood becomes the weak material, and the
     // sweeps after it trim what grew outside the block: the truth.
-    let grown = run(true);
+    let grown = run(Growth::On);
     assert_eq!(
         grown.current().0,
         &stand_in_truth()[..],
@@ -179,6 +179,63 @@ fn growth_rounds_replace_a_strong_pixel_standing_in_for_a_weak_block() {
         .iter()
         .zip(grown.history())
         .all(|(a, b)| a.growth == b.growth));
+}
+
+#[test]
+fn auto_growth_runs_only_from_a_one_material_start() {
+    // The stand-in start holds two materials: `auto` is off there, and the stage ends on
+    // the stand-in as without growth.
+    let auto = run_stand_in(0.2, Growth::Auto, 12, &mut |_| {});
+    assert_eq!(auto.config().grow_objects, Growth::Off);
+    assert_eq!(auto.current().0, &stand_in_start()[..]);
+    assert!(auto.history().iter().all(|h| !h.growth));
+    // From a one-material map it is on, and stays resolved through a checkpoint.
+    let config = RefineConfig {
+        grow_objects: Growth::Auto,
+        ..config()
+    };
+    let level_zero = two_materials(config, 4, vec![0; 16]);
+    assert_eq!(level_zero.config().grow_objects, Growth::On);
+    let json = serde_json::to_string(&level_zero).unwrap();
+    let back: Refinement = serde_json::from_str(&json).unwrap();
+    assert_eq!(back.config().grow_objects, Growth::On);
+    assert_eq!(Growth::Auto.resolve(&[]), Growth::Off);
+}
+
+#[test]
+fn growth_settings_read_as_before_and_as_words() {
+    // A record written when growth was a boolean reads back unchanged; `auto` is a word.
+    for (text, growth) in [
+        ("true", Growth::On),
+        ("false", Growth::Off),
+        ("\"auto\"", Growth::Auto),
+    ] {
+        let read: Growth = serde_json::from_str(text).unwrap();
+        assert_eq!(read, growth, "{text}");
+        assert_eq!(serde_json::to_string(&growth).unwrap(), text);
+    }
+    let old = serde_json::to_value(config()).unwrap();
+    assert!(
+        old.get("grow_objects").is_none(),
+        "off is left out, as before"
+    );
+    let mut on = old.clone();
+    on["grow_objects"] = serde_json::Value::Bool(true);
+    let read: RefineConfig = serde_json::from_value(on).unwrap();
+    assert_eq!(read.grow_objects, Growth::On);
+    let read: RefineConfig = serde_json::from_value(old).unwrap();
+    assert_eq!(read.grow_objects, Growth::Off);
+    for (word, growth) in [
+        ("auto", Growth::Auto),
+        ("on", Growth::On),
+        ("false", Growth::Off),
+    ] {
+        assert_eq!(word.parse::<Growth>(), Ok(growth));
+        assert_eq!(growth.to_string().parse::<Growth>(), Ok(growth));
+    }
+    let err = "sometimes".parse::<Growth>().unwrap_err().to_string();
+    assert!(err.contains("auto") && err.contains("sometimes"), "{err}");
+    assert!(serde_json::from_str::<Growth>("\"maybe\"").is_err());
 }
 
 /// A 4 × 4 map whose truth is a 2 × 2 block (pixels 5, 6, 9, 10) of the weak material 1 in
@@ -208,7 +265,7 @@ fn stand_in_scores(outside: f64) -> impl Fn(&[u16], u64, u32) -> Scored {
 /// three materials, handing each step's state to `on_step`.
 fn run_stand_in(
     outside: f64,
-    grow_objects: bool,
+    grow_objects: Growth,
     max_sweeps: u32,
     on_step: &mut dyn FnMut(&Refinement),
 ) -> Refinement {
@@ -249,7 +306,7 @@ fn a_grown_map_that_loses_is_tried_and_kept_only_if_its_sweeps_beat_the_start() 
     // Grown too far, the map loses to the strong pixel (5 pixels outside the block cost
     // more than the strong pixel), but the sweeps from it trim it to the truth.
     let start = stand_in_start();
-    let run = |max_sweeps| run_stand_in(0.4, true, max_sweeps, &mut |_| {});
+    let run = |max_sweeps| run_stand_in(0.4, Growth::On, max_sweeps, &mut |_| {});
     let tried = run(16);
     assert_eq!(
         tried.current().0,
@@ -271,7 +328,7 @@ fn a_grown_map_that_loses_is_tried_and_kept_only_if_its_sweeps_beat_the_start() 
     // The trial survives a checkpoint: resumed midway, the run ends the same.
     let mut steps = 0;
     let mut midway = None;
-    run_stand_in(0.4, true, 16, &mut |r: &Refinement| {
+    run_stand_in(0.4, Growth::On, 16, &mut |r: &Refinement| {
         steps += 1;
         if r.trial.is_some() && midway.is_none() {
             midway = Some(serde_json::to_string(r).unwrap());
@@ -298,7 +355,7 @@ fn a_grown_map_that_loses_is_tried_and_kept_only_if_its_sweeps_beat_the_start() 
     assert!(grown_z.is_finite() && grown_z < config().z, "{grown_z}");
     let floored = |floor: f64| {
         let config = RefineConfig {
-            grow_objects: true,
+            grow_objects: Growth::On,
             max_sweeps: 16,
             grow_trial_z: Some(floor),
             ..config()
@@ -620,7 +677,7 @@ fn a_growth_round_fills_an_objects_box_grown_by_each_side() {
     }
     let r = two_materials(
         RefineConfig {
-            grow_objects: true,
+            grow_objects: Growth::On,
             ..config()
         },
         5,

@@ -36,7 +36,7 @@ fn fresh() -> Search {
         swap_pixels: false,
         blocks: false,
         simplify_z: None,
-        grow_objects: false,
+        grow_objects: crate::refine::Growth::Off,
         grow_trial_z: None,
     };
     let config = SearchConfig {
