@@ -350,6 +350,44 @@ mod tests {
             text.contains("j.toml") && text.contains("coarse_levels") && text.contains("\"auto\""),
             "{text}"
         );
+        // A value of the wrong type says what was expected too.
+        for wrong in ["true", "-1", "1.5"] {
+            let err = JobSpec::from_toml(
+                &format!("scene = \"fig7a\"\ncoarse_levels = {wrong}\n"),
+                Path::new("j.toml"),
+            )
+            .unwrap_err();
+            let text = format!("{err:#}");
+            assert!(text.contains("a level count"), "{wrong}: {text}");
+        }
+    }
+
+    #[test]
+    fn growth_is_a_boolean_or_auto_in_job_files() {
+        // A job file written when growth was a boolean reads as before.
+        for (text, want) in [
+            ("true", Growth::On),
+            ("false", Growth::Off),
+            ("\"auto\"", Growth::Auto),
+        ] {
+            let p = JobSpec::from_toml(
+                &format!("scene = \"fig7a\"\nrefine_grow = {text}\n"),
+                Path::new("j.toml"),
+            )
+            .unwrap();
+            assert_eq!(p.refine_grow, Some(want));
+            let back = JobSpec::from_toml(&p.to_toml().unwrap(), Path::new("k.toml")).unwrap();
+            assert_eq!(back, p);
+        }
+        let err = JobSpec::from_toml("scene = \"fig7a\"\nrefine_grow = 2\n", Path::new("j.toml"))
+            .unwrap_err();
+        let text = format!("{err:#}");
+        assert!(
+            text.contains("j.toml")
+                && text.contains("refine_grow")
+                && text.contains("expected true, false or \"auto\""),
+            "{text}"
+        );
     }
 
     #[test]

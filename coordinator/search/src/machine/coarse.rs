@@ -13,8 +13,7 @@ use std::str::FromStr;
 ///
 /// Stored as a number (`Count`) or the string `"auto"`, so a checkpoint or job record written
 /// when only numbers were known reads back unchanged.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(try_from = "Repr", into = "Repr")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CoarseLevels {
     /// Levels `0 … n−1`; the refinement (or the result) starts from level `n−1`'s map.
     Count(u32),
@@ -51,31 +50,45 @@ impl FromStr for CoarseLevels {
     }
 }
 
-/// The stored form: a number or a word.
-#[derive(Serialize, Deserialize)]
-#[serde(untagged)]
-enum Repr {
-    Count(u32),
-    Word(String),
-}
-
-impl TryFrom<Repr> for CoarseLevels {
-    type Error = ParseCoarseLevelsError;
-
-    fn try_from(r: Repr) -> Result<Self, Self::Error> {
-        match r {
-            Repr::Count(n) => Ok(CoarseLevels::Count(n)),
-            Repr::Word(w) => w.parse(),
+impl Serialize for CoarseLevels {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            CoarseLevels::Count(n) => serializer.serialize_u32(*n),
+            CoarseLevels::Auto => serializer.serialize_str("auto"),
         }
     }
 }
 
-impl From<CoarseLevels> for Repr {
-    fn from(c: CoarseLevels) -> Repr {
-        match c {
-            CoarseLevels::Count(n) => Repr::Count(n),
-            CoarseLevels::Auto => Repr::Word("auto".into()),
-        }
+impl<'de> Deserialize<'de> for CoarseLevels {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        deserializer.deserialize_any(CoarseLevelsVisitor)
+    }
+}
+
+/// Reads [`CoarseLevels`] from a number or a word, with an error that says what was expected.
+struct CoarseLevelsVisitor;
+
+impl serde::de::Visitor<'_> for CoarseLevelsVisitor {
+    type Value = CoarseLevels;
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a level count (1, 2, …) or \"auto\"")
+    }
+
+    fn visit_u64<E: serde::de::Error>(self, n: u64) -> Result<CoarseLevels, E> {
+        u32::try_from(n)
+            .map(CoarseLevels::Count)
+            .map_err(|_| E::invalid_value(serde::de::Unexpected::Unsigned(n), &self))
+    }
+
+    fn visit_i64<E: serde::de::Error>(self, n: i64) -> Result<CoarseLevels, E> {
+        u64::try_from(n)
+            .map_err(|_| E::invalid_value(serde::de::Unexpected::Signed(n), &self))
+            .and_then(|n| self.visit_u64(n))
+    }
+
+    fn visit_str<E: serde::de::Error>(self, word: &str) -> Result<CoarseLevels, E> {
+        word.parse().map_err(E::custom)
     }
 }
 

@@ -116,8 +116,7 @@ pub struct RefineConfig {
 ///
 /// Stored as a boolean (`On`, `Off`) or the string `"auto"`, so a checkpoint or job record
 /// written when growth was a boolean reads back unchanged.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(try_from = "GrowthRepr", into = "GrowthRepr")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Growth {
     /// No growth rounds.
     #[default]
@@ -183,33 +182,38 @@ impl FromStr for Growth {
     }
 }
 
-/// The stored form of a [`Growth`]: a boolean or a word.
-#[derive(Serialize, Deserialize)]
-#[serde(untagged)]
-enum GrowthRepr {
-    Flag(bool),
-    Word(String),
-}
-
-impl TryFrom<GrowthRepr> for Growth {
-    type Error = ParseGrowthError;
-
-    fn try_from(r: GrowthRepr) -> Result<Self, Self::Error> {
-        match r {
-            GrowthRepr::Flag(true) => Ok(Growth::On),
-            GrowthRepr::Flag(false) => Ok(Growth::Off),
-            GrowthRepr::Word(w) => w.parse(),
+impl Serialize for Growth {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Growth::On => serializer.serialize_bool(true),
+            Growth::Off => serializer.serialize_bool(false),
+            Growth::Auto => serializer.serialize_str("auto"),
         }
     }
 }
 
-impl From<Growth> for GrowthRepr {
-    fn from(g: Growth) -> GrowthRepr {
-        match g {
-            Growth::On => GrowthRepr::Flag(true),
-            Growth::Off => GrowthRepr::Flag(false),
-            Growth::Auto => GrowthRepr::Word("auto".into()),
-        }
+impl<'de> Deserialize<'de> for Growth {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        deserializer.deserialize_any(GrowthVisitor)
+    }
+}
+
+/// Reads a [`Growth`] from a boolean or a word, with an error that says what was expected.
+struct GrowthVisitor;
+
+impl serde::de::Visitor<'_> for GrowthVisitor {
+    type Value = Growth;
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("true, false or \"auto\"")
+    }
+
+    fn visit_bool<E: serde::de::Error>(self, on: bool) -> Result<Growth, E> {
+        Ok(if on { Growth::On } else { Growth::Off })
+    }
+
+    fn visit_str<E: serde::de::Error>(self, word: &str) -> Result<Growth, E> {
+        word.parse().map_err(E::custom)
     }
 }
 
