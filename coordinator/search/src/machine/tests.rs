@@ -1,6 +1,7 @@
 //! The step logic against scripted scorers, seeding, and restoring from checkpoints.
 
 use super::*;
+use crate::refine::RefineConfig;
 use scatterfarm_model::material::builtin_material;
 
 fn table(names: &[&str]) -> MaterialTable {
