@@ -114,7 +114,7 @@ pub struct Plan {
 
 impl Plan {
     /// Resolves `spec` against `inputs`: every check that needs no rendering happens here,
-    /// in the order of the steps in [`resolve`].
+    /// in the order of the steps in `plan::resolve`.
     pub fn resolve(spec: &JobSpec, inputs: &Inputs) -> Result<Plan> {
         resolve::resolve(spec, inputs)
     }
