@@ -160,19 +160,7 @@ impl Search {
         // Level 0 is one step over one region (the whole medium) from a map that every
         // candidate replaces entirely.
         let m0 = vec![candidates[0]; search.pixels()];
-        search.state = Some(LevelState {
-            level: 0,
-            candidates,
-            m0: m0.clone(),
-            permutation: 0,
-            order: vec![0],
-            done: 0,
-            current: m0,
-            current_score: None,
-            best: None,
-            finals: Vec::new(),
-            early_base: None,
-        });
+        search.state = Some(LevelState::start(0, candidates, m0, vec![0]));
         search.emit_steps();
         Ok(search)
     }

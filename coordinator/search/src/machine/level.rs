@@ -51,6 +51,26 @@ pub(super) struct LevelState {
     pub(super) early_base: Option<u64>,
 }
 
+impl LevelState {
+    /// The start of `level` from `m0`, before its first permutation (`order`: that
+    /// permutation's regions where already known).
+    pub(super) fn start(level: u32, candidates: Vec<u16>, m0: Vec<u16>, order: Vec<u32>) -> Self {
+        LevelState {
+            level,
+            candidates,
+            m0: m0.clone(),
+            permutation: 0,
+            order,
+            done: 0,
+            current: m0,
+            current_score: None,
+            best: None,
+            finals: Vec::new(),
+            early_base: None,
+        }
+    }
+}
+
 impl Search {
     /// The last level the coarse stage runs ([`SearchConfig::coarse_levels`]); under
     /// [`CoarseLevels::Auto`], decided once level 0 has ended (the finest until then).
@@ -307,19 +327,7 @@ impl Search {
             .map(|l| l.assignment.clone())
             .unwrap_or_default();
         let candidates = self.level_candidates(level, &m0)?;
-        self.state = Some(LevelState {
-            level,
-            candidates,
-            m0: m0.clone(),
-            permutation: 0,
-            order: Vec::new(),
-            done: 0,
-            current: m0,
-            current_score: None,
-            best: None,
-            finals: Vec::new(),
-            early_base: None,
-        });
+        self.state = Some(LevelState::start(level, candidates, m0, Vec::new()));
         self.stage_start = self.next_request;
         self.start_permutation();
         Ok(())
