@@ -11,10 +11,14 @@
 #   swaps     neighbouring-pixel swaps in the sweeps;
 #   blocks    2 × 2 blocks and neighbouring pairs set wholly to each material in the sweeps;
 #   simplify  simplification rounds at 1 paired standard error where the stage would end;
+#   (Runs without `grow` or `nogrow` in their name had no growth rounds before stop 49; since
+#   then the default, `auto`, runs them where the refinement starts from level 0's map.)
 #   grow      growth rounds where the stage would end: small objects grown by their neighbours
 #             and recoloured, each rendered on its own, the best tried when none wins
 #             (refine_grow; runs before the trials: the untagged fig7f seed-1 JSON; before
 #             the filled bounding boxes: tags trial and trialz; with them: tag rect);
+#   nogrow    no growth rounds (refine_grow=false): the default refinement before stop 49, when
+#             growth became `auto` (on where the refinement starts from level 0's map);
 #   notrial   no growth trials: a growth round's best grown map is tried only above a paired
 #             z of 1e9 (refine_grow_trial_z), so only rounds that win change the map;
 #   coarseN   the coarse stage cut to its first N quad-tree levels (coarse1: refinement from
